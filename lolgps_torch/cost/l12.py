@@ -1,0 +1,153 @@
+"""The peg-insertion cost (paper eq. 9, ALGORITHM.md section 2) and its quadratic expansion.
+
+    l(x_t, u_t) = 1/2 sum_j wu_j u_j^2  +  m_t * l12(z_t),
+    l12(z)      = 1/2 l2 |z|^2 + l1 sqrt(gamma + |z|^2),
+    z_t         = A (p(q_t) - p*),
+
+where p(q) stacks the tip and top points (6), p* their targets, and A (8 x 6) holds
+sqrt(per-axis point weights) on its first six rows and sqrt(tilt weight) times the lateral
+offset between tip and top on the last two.  m_t is 1, or ``final_multiplier`` at t = T-1.
+wu_j = action_weight / effort_j^2, so the action cost is in units of the effort limits.
+
+The expansion is Gauss-Newton through forward kinematics (as the original GPS):
+l_q = J^T A^T g, l_qq = J^T A^T H A J with g, H the gradient and Hessian of l12 in z.
+The cost depends on x only through q.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.cost.kinematics import PegKinematics
+from lolgps_torch.state import StateLayout
+from lolgps_torch.types import QuadraticCost
+
+
+@dataclass(frozen=True)
+class CostConfig:
+    """Weights of the l12 + action cost.
+
+    :param l1: weight of the sqrt (l1-like) term. :param l2: weight of the squared term.
+    :param gamma: smoothing of the sqrt term.
+    :param lateral_weight: per-point weight on the x and y errors.
+    :param vertical_weight: per-point weight on the z error.
+    :param tilt_weight: weight on the lateral offset between tip and top (a tilted peg).
+    :param final_multiplier: multiplier of the point term at the last step.
+    :param action_weight: wu in units of the effort limits.
+    """
+
+    l1: float = 0.1
+    l2: float = 10.0
+    gamma: float = 1e-5
+    lateral_weight: float = 5.0
+    vertical_weight: float = 1.0
+    tilt_weight: float = 5.0
+    final_multiplier: float = 10.0
+    action_weight: float = 1.0
+
+
+class CostExpansion(NamedTuple):
+    """Per-sample quadratic expansion, sample-first: l ``[N, T]``, lx ``[N, T, dX]``,
+    lu ``[N, T, dU]``, lxx ``[N, T, dX, dX]``, luu ``[N, T, dU, dU]``, lux ``[N, T, dU, dX]``."""
+
+    l: Tensor
+    lx: Tensor
+    lu: Tensor
+    lxx: Tensor
+    luu: Tensor
+    lux: Tensor
+
+
+class PegCost:
+    """Evaluates and expands the cost for batches of trajectories ``[N, T]``."""
+
+    def __init__(
+        self, config: CostConfig, kinematics: PegKinematics, layout: StateLayout, effort: Tensor
+    ) -> None:
+        self.config = config
+        self.kinematics = kinematics
+        self.layout = layout
+        dev = kinematics.device
+        self.wu = config.action_weight / effort.to(dtype=torch.float64, device=dev) ** 2
+        axis = torch.tensor(
+            [config.lateral_weight, config.lateral_weight, config.vertical_weight],
+            dtype=torch.float64,
+            device=dev,
+        )
+        A = torch.zeros(8, 6, dtype=torch.float64, device=dev)
+        A[:6, :6] = torch.diag(axis.repeat(2).sqrt())
+        tilt = config.tilt_weight**0.5
+        A[6, 0], A[6, 3], A[7, 1], A[7, 4] = tilt, -tilt, tilt, -tilt
+        self.A = A  # [8, 6]
+
+    def _multiplier(self, T: int, like: Tensor) -> Tensor:
+        m = torch.ones(T, dtype=like.dtype, device=like.device)
+        m[-1] = self.config.final_multiplier
+        return m
+
+    def _l12(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        """Value and sqrt term ``s = sqrt(gamma + |z|^2)`` for ``z: [..., 8]``."""
+        c = self.config
+        sq = (z * z).sum(-1)
+        s = torch.sqrt(c.gamma + sq)
+        return 0.5 * c.l2 * sq + c.l1 * s, s
+
+    def evaluate(self, x: Tensor, u: Tensor, targets: Tensor) -> Tensor:
+        """Per-step cost ``[N, T]`` for x ``[N, T, dX]``, u ``[N, T, dU]``, targets ``[2, 3]``."""
+        q = x[..., self.layout.q]
+        d = (self.kinematics.points(q) - targets).flatten(-2)  # [N, T, 6]
+        value, _ = self._l12(d @ self.A.T)
+        action = 0.5 * (self.wu * u * u).sum(-1)
+        return action + self._multiplier(x.shape[-2], x) * value
+
+    def expand(self, x: Tensor, u: Tensor, targets: Tensor) -> CostExpansion:
+        """Value, gradient and Gauss-Newton Hessian at every sample and step."""
+        c = self.config
+        N, T, dX = x.shape
+        dU = u.shape[-1]
+        q = x[..., self.layout.q]
+        d = (self.kinematics.points(q) - targets).flatten(-2)
+        z = d @ self.A.T  # [N, T, 8]
+        value, s = self._l12(z)
+        g = (c.l2 + c.l1 / s)[..., None] * z  # dl12/dz
+        eye = torch.eye(8, dtype=x.dtype, device=x.device)
+        H = (c.l2 + c.l1 / s)[..., None, None] * eye - (c.l1 / s**3)[..., None, None] * (
+            z[..., :, None] * z[..., None, :]
+        )
+        m = self._multiplier(T, x)
+        AJ = self.A @ self.kinematics.jacobian(q)  # [N, T, 8, n]
+        lq = m[:, None] * torch.einsum("ntzq,ntz->ntq", AJ, g)
+        lqq = m[:, None, None] * AJ.transpose(-1, -2) @ H @ AJ
+
+        lx = x.new_zeros(N, T, dX)
+        lx[..., self.layout.q] = lq
+        lxx = x.new_zeros(N, T, dX, dX)
+        lxx[..., self.layout.q, self.layout.q] = lqq
+        lu = self.wu * u
+        luu = torch.diag_embed(self.wu.expand(N, T, dU))
+        lux = x.new_zeros(N, T, dU, dX)
+        l = 0.5 * (self.wu * u * u).sum(-1) + m * value
+        return CostExpansion(l, lx, lu, lxx, luu, lux)
+
+
+def to_quadratic(expansion: CostExpansion, x: Tensor, u: Tensor) -> QuadraticCost:
+    """Average the per-sample expansions into one quadratic in absolute coordinates.
+
+    Around each sample y_n = [x_n; u_n]: l(y) ~ l_n + g_n^T (y - y_n) + 1/2 (y - y_n)^T H_n (y - y_n),
+    so C = mean H_n, c = mean (g_n - H_n y_n), cc = mean (l_n - g_n^T y_n + 1/2 y_n^T H_n y_n).
+    """
+    e = expansion
+    y = torch.cat([x, u], dim=-1)  # [N, T, dY]
+    g = torch.cat([e.lx, e.lu], dim=-1)
+    H = torch.cat(
+        [torch.cat([e.lxx, e.lux.transpose(-1, -2)], -1), torch.cat([e.lux, e.luu], -1)], -2
+    )
+    Hy = (H @ y[..., None])[..., 0]
+    C = H.mean(0)
+    c = (g - Hy).mean(0)
+    cc = (e.l - (g * y).sum(-1) + 0.5 * (y * Hy).sum(-1)).mean(0)
+    return QuadraticCost(C, c, cc)

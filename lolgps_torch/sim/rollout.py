@@ -1,0 +1,88 @@
+"""Rollouts: N worlds stepped in lockstep, the actions computed for all N in one torch call.
+
+The only numpy in the algorithm path is here, at the simulator boundary: the state of each
+world is read into one ``[N, dX]`` array, turned into a tensor, the acting controller maps it
+to ``[N, dU]`` torques, and these go back to the worlds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from lolgps_torch.sim.arm import ArmSpec
+from lolgps_torch.sim.world import PegWorld, WorldConfig
+from lolgps_torch.types import LinearGaussian
+
+# act(t, x, rows) -> u: states x [n, dX] of the batch's rollouts ``rows`` -> torques [n, dU]
+Actor = Callable[[int, Tensor, slice], Tensor]
+
+
+def linear_gaussian_actor(controller: LinearGaussian, noise: Tensor) -> Actor:
+    """``u_t = K_t x_t + k_t + chol(cov_t) eps_t`` with pre-drawn noise ``eps: [N, T, dU]``."""
+    K, k = controller.K.detach(), controller.k.detach()
+    L = controller.chol().detach()
+    shifted = torch.einsum("tuv,ntv->ntu", L, noise)  # [N, T, dU]
+
+    def act(t: int, x: Tensor, rows: slice) -> Tensor:
+        return x @ K[t].T + k[t] + shifted[rows, t]
+
+    return act
+
+
+class Sampler:
+    """A pool of worlds that run up to ``len(worlds)`` rollouts at a time."""
+
+    def __init__(
+        self,
+        arm: ArmSpec,
+        config: WorldConfig,
+        nominal_mouth: tuple[float, ...],
+        q0: Sequence[float],
+        n_worlds: int,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.config = config
+        self.q0 = np.asarray(q0, dtype=np.float64)
+        self.device = torch.device(device)
+        self.worlds = [PegWorld(arm, config, nominal_mouth) for _ in range(n_worlds)]
+
+    def rollout(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> tuple[Tensor, Tensor, Tensor]:
+        """Run one episode per hole offset; returns x ``[N, T, dX]``, u ``[N, T, dU]`` and the
+        final tip distance ``[N]`` (float64 tensors on the sampler's device)."""
+        T = self.config.T
+        results_x, results_u, results_d = [], [], []
+        for start in range(0, len(offsets), len(self.worlds)):
+            chunk = list(offsets[start : start + len(self.worlds)])
+            worlds = self.worlds[: len(chunk)]
+            for world, off in zip(worlds, chunk, strict=True):
+                world.set_hole(off)
+            x_np = np.stack([w.reset(self.q0) for w in worlds])
+            xs = np.empty((len(chunk), T, x_np.shape[1]))
+            us = np.empty((len(chunk), T, len(self.q0)))
+            for t in range(T):
+                xs[:, t] = x_np
+                x_t = torch.from_numpy(x_np).to(self.device)
+                u_np = act(t, x_t, slice(start, start + len(chunk))).cpu().numpy()
+                us[:, t] = u_np
+                if t < T - 1:
+                    x_np = np.stack([w.step(u) for w, u in zip(worlds, u_np, strict=True)])
+                else:  # the last action is applied too, so the final distance reflects it
+                    for w, u in zip(worlds, u_np, strict=True):
+                        w.step(u)
+            results_x.append(xs)
+            results_u.append(us)
+            results_d.append([w.tip_distance() for w in worlds])
+        to = {"dtype": torch.float64, "device": self.device}
+        return (
+            torch.as_tensor(np.concatenate(results_x), **to),
+            torch.as_tensor(np.concatenate(results_u), **to),
+            torch.as_tensor(np.concatenate(results_d), **to),
+        )
+
+    def close(self) -> None:
+        for w in self.worlds:
+            w.close()

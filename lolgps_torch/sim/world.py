@@ -1,0 +1,208 @@
+"""The peg-insertion world in PyBullet (DIRECT mode).
+
+Dynamics: each control step of ``dt`` holds the command for ``substeps`` physics steps.  The
+joint torque sent at every physics step is ``clip(u + g(q), -effort, effort)``, where ``g(q)``
+is the gravity-compensation torque (inverse dynamics at zero velocity and acceleration)
+evaluated at the start of the control step, as a torque-controlled arm's own gravity
+compensation would.  Only the peg collides with the table and the hole.
+
+The hole is a square funnel cut in a table: four guide plates tilted so the clearance per side
+narrows from ``clearance_mouth`` at the table surface to ``clearance_bottom`` at the floor,
+``depth`` below.  The condition is the hole's planar position.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as pb
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.sim.arm import ArmSpec
+from lolgps_torch.state import StateLayout
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """Simulation and hole geometry (SI units).
+
+    :param dt: control step. :param substeps: physics steps per control step.
+    :param T: steps per episode. :param gravity: gravitational acceleration (m/s^2).
+    :param depth: hole depth. :param clearance_mouth: clearance per side at the mouth.
+    :param clearance_bottom: clearance per side at the floor.
+    :param plate_thickness: guide plate thickness. :param table_half_size: table half extent.
+    :param friction: lateral friction of table and hole.
+    :param success_threshold: tip-to-target distance that counts as inserted.
+    """
+
+    dt: float = 0.05
+    substeps: int = 5
+    T: int = 100
+    gravity: float = 9.81
+    depth: float = 0.10
+    clearance_mouth: float = 0.004
+    clearance_bottom: float = 0.001
+    plate_thickness: float = 0.02
+    table_half_size: float = 0.6
+    friction: float = 0.2
+    success_threshold: float = 0.06
+
+
+class PegWorld:
+    """One PyBullet client with the arm, the table and the hole.  Not picklable: build it in
+    the process that uses it."""
+
+    def __init__(self, arm: ArmSpec, config: WorldConfig, nominal_mouth: tuple[float, ...]) -> None:
+        self.arm, self.config = arm, config
+        self.layout = StateLayout(arm.dof)
+        self.nominal_mouth = np.asarray(nominal_mouth, dtype=np.float64)
+        self.client = pb.connect(pb.DIRECT)
+        c = self.client
+        pb.setPhysicsEngineParameter(
+            fixedTimeStep=config.dt / config.substeps, deterministicOverlappingPairs=1, physicsClientId=c
+        )
+        pb.setGravity(0, 0, -config.gravity, physicsClientId=c)
+        with tempfile.NamedTemporaryFile("w", suffix=".urdf", delete=False) as fh:
+            fh.write(arm.urdf_text)
+        try:
+            self.body = pb.loadURDF(
+                fh.name, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c
+            )
+        except pb.error as exc:
+            raise LolgpsError(f"PyBullet could not load {arm.source_path}: {exc}") from None
+        finally:
+            os.unlink(fh.name)
+        self._index_joints()
+        self.hole = self._build_hole()
+        self.offsets = np.asarray(arm.point_offsets, dtype=np.float64)  # [2, 3]
+        self.effort = np.asarray(arm.effort, dtype=np.float64)
+        self.targets = np.zeros((2, 3))
+        self._prev_points = np.zeros(6)
+        self.set_hole((0.0, 0.0))
+
+    def _index_joints(self) -> None:
+        c = self.client
+        names, links, movable = {}, {}, []
+        for i in range(pb.getNumJoints(self.body, physicsClientId=c)):
+            info = pb.getJointInfo(self.body, i, physicsClientId=c)
+            names[info[1].decode()] = i
+            links[info[12].decode()] = i
+            if info[2] != pb.JOINT_FIXED:
+                movable.append(i)
+        self.joint_ids = [names[n] for n in self.arm.joint_names]
+        self.point_link_id = links[self.arm.point_link]
+        self.movable = movable  # every non-fixed joint, the order inverse dynamics expects
+        self.actuated_in_movable = [movable.index(j) for j in self.joint_ids]
+        pb.setJointMotorControlArray(
+            self.body, self.joint_ids, pb.VELOCITY_CONTROL, forces=[0.0] * len(self.joint_ids),
+            physicsClientId=c,
+        )
+        peg_id = links[self.arm.peg_link]
+        for link in [-1, *links.values()]:
+            if link != peg_id:
+                pb.setCollisionFilterGroupMask(self.body, link, 0, 0, physicsClientId=c)
+
+    def _build_hole(self) -> int:
+        """Table slab with a square opening, four tilted guide plates and a floor (static)."""
+        cfg, c = self.config, self.client
+        a_top = self.arm.peg_radius + cfg.clearance_mouth
+        a_bot = self.arm.peg_radius + cfg.clearance_bottom
+        h, D, W = cfg.plate_thickness / 2, cfg.depth, cfg.table_half_size
+        norm = math.hypot(D, a_bot - a_top)
+        nx, nz = D / norm, (a_bot - a_top) / norm  # outward normal of the +x plate's face
+        face_mid = np.array([(a_top + a_bot) / 2, 0.0, -D / 2])
+        centre = face_mid + h * np.array([nx, 0.0, nz])
+        tilt = pb.getQuaternionFromEuler([0.0, math.atan2(-nz, nx), 0.0])
+        half_plate = [h, a_top + 2 * h, norm / 2]
+        extents, positions, orientations = [], [], []
+        for k in range(4):
+            yaw = pb.getQuaternionFromEuler([0.0, 0.0, k * math.pi / 2])
+            pos, orn = pb.multiplyTransforms([0, 0, 0], yaw, centre.tolist(), tilt)
+            extents.append(half_plate)
+            positions.append(pos)
+            orientations.append(orn)
+        outer = a_top + 2 * h  # the slab leaves a square opening of this half-width
+        zc, zh = -(D + 2 * h) / 2, (D + 2 * h) / 2
+        for k in range(4):  # a pinwheel of four slabs around the opening
+            yaw = pb.getQuaternionFromEuler([0.0, 0.0, k * math.pi / 2])
+            pos, orn = pb.multiplyTransforms([0, 0, 0], yaw, [(outer + W) / 2, (W - outer) / 2, zc], [0, 0, 0, 1])
+            extents.append([(W - outer) / 2, (W + outer) / 2, zh])
+            positions.append(pos)
+            orientations.append(orn)
+        extents.append([outer, outer, h])
+        positions.append([0.0, 0.0, -D - h])
+        orientations.append([0, 0, 0, 1])
+        shape = pb.createCollisionShapeArray(
+            [pb.GEOM_BOX] * len(extents),
+            halfExtents=extents,
+            collisionFramePositions=positions,
+            collisionFrameOrientations=orientations,
+            physicsClientId=c,
+        )
+        body = pb.createMultiBody(0.0, shape, -1, [0, 0, 0], physicsClientId=c)
+        pb.changeDynamics(body, -1, lateralFriction=cfg.friction, physicsClientId=c)
+        return int(body)
+
+    def set_hole(self, offset: tuple[float, float]) -> None:
+        """Move the hole to ``nominal + (dx, dy)``; targets: tip at the floor centre, top above."""
+        mouth = self.nominal_mouth + np.array([offset[0], offset[1], 0.0])
+        pb.resetBasePositionAndOrientation(
+            self.hole, mouth.tolist(), [0, 0, 0, 1], physicsClientId=self.client
+        )
+        tip = mouth - np.array([0.0, 0.0, self.config.depth])
+        self.targets = np.stack([tip, tip - self.offsets[1]])  # top offset points down the axis
+
+    def points(self) -> np.ndarray:
+        """World positions of the tip and top points, ``[2, 3]``."""
+        state = pb.getLinkState(
+            self.body, self.point_link_id, computeForwardKinematics=True, physicsClientId=self.client
+        )
+        R = np.array(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
+        return np.asarray(state[4]) + self.offsets @ R.T
+
+    def reset(self, q0: np.ndarray) -> np.ndarray:
+        """Put the arm at rest at ``q0`` and return the state."""
+        for j, qj in zip(self.joint_ids, q0, strict=True):
+            pb.resetJointState(self.body, j, float(qj), 0.0, physicsClientId=self.client)
+        self._prev_points = (self.points() - self.targets).reshape(6)
+        return self.observe()
+
+    def observe(self) -> np.ndarray:
+        """The state vector ``[dX]`` (see :class:`StateLayout`)."""
+        states = pb.getJointStates(self.body, self.joint_ids, physicsClientId=self.client)
+        q = np.array([s[0] for s in states])
+        qd = np.array([s[1] for s in states])
+        pts = (self.points() - self.targets).reshape(6)
+        vel = (pts - self._prev_points) / self.config.dt
+        return np.concatenate([q, qd, pts, vel])
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """Apply torque ``u`` (on top of gravity compensation) for one control step."""
+        c = self.client
+        if not np.all(np.isfinite(u)):
+            raise LolgpsError("non-finite action: the controller produced NaN or inf torques")
+        pos = [s[0] for s in pb.getJointStates(self.body, self.movable, physicsClientId=c)]
+        zeros = [0.0] * len(self.movable)
+        g = np.asarray(
+            pb.calculateInverseDynamics(self.body, pos, zeros, zeros, physicsClientId=c)
+        )[self.actuated_in_movable]
+        tau = np.clip(u + g, -self.effort, self.effort).tolist()
+        self._prev_points = (self.points() - self.targets).reshape(6)
+        for _ in range(self.config.substeps):
+            pb.setJointMotorControlArray(
+                self.body, self.joint_ids, pb.TORQUE_CONTROL, forces=tau, physicsClientId=c
+            )
+            pb.stepSimulation(physicsClientId=c)
+        return self.observe()
+
+    def tip_distance(self) -> float:
+        """Distance (m) from the peg tip to the hole-floor target."""
+        return float(np.linalg.norm(self.points()[0] - self.targets[0]))
+
+    def close(self) -> None:
+        if pb.isConnected(self.client):
+            pb.disconnect(self.client)

@@ -1,0 +1,100 @@
+"""The peg-insertion task assembled from its parts: arm, kinematics, placement, worlds, cost.
+
+Conditions are planar hole offsets ``(dx, dy)`` (m) from the nominal hole position.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import pybullet as pb
+import torch
+from torch import Tensor
+
+from lolgps_torch.cost.kinematics import PegKinematics
+from lolgps_torch.cost.l12 import CostConfig, PegCost
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.sim.arm import ArmSpec, PegConfig, load_arm
+from lolgps_torch.sim.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
+from lolgps_torch.sim.rollout import Actor, Sampler
+from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.state import StateLayout
+from lolgps_torch.types import Trajectories
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """Everything that defines the task.  :param urdf: path of the arm's URDF.
+    :param ee_link: end-effector link (detected when None)."""
+
+    urdf: str
+    ee_link: str | None = None
+    peg: PegConfig = field(default_factory=PegConfig)
+    world: WorldConfig = field(default_factory=WorldConfig)
+    placement: PlacementConfig = field(default_factory=PlacementConfig)
+    cost: CostConfig = field(default_factory=CostConfig)
+
+
+class PegTask:
+    """Samples rollouts at hole offsets and scores them with the l12 cost."""
+
+    def __init__(self, config: TaskConfig, n_worlds: int = 5, device: str = "cpu") -> None:
+        self.config = config
+        self.device = torch.device(device)
+        self.arm: ArmSpec = load_arm(config.urdf, config.ee_link, config.peg)
+        self.layout = StateLayout(self.arm.dof)
+        self.kinematics = PegKinematics(self.arm, self.device)
+        self.geometry = place_task(self.arm, self.kinematics, config.placement)
+        self.sampler = Sampler(
+            self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0, n_worlds, device
+        )
+        effort = torch.tensor(self.arm.effort, dtype=torch.float64)
+        self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
+
+    @property
+    def T(self) -> int:
+        return self.config.world.T
+
+    @property
+    def q0(self) -> Tensor:
+        return torch.tensor(self.geometry.q0, dtype=torch.float64, device=self.device)
+
+    def targets(self, offsets: Sequence[tuple[float, float]]) -> Tensor:
+        """Tip and top targets ``[M, 2, 3]`` for hole offsets ``[M, 2]``."""
+        mouth = torch.tensor(self.geometry.nominal_mouth, dtype=torch.float64, device=self.device)
+        off = torch.tensor(offsets, dtype=torch.float64, device=self.device).reshape(-1, 2)
+        tip = mouth + torch.nn.functional.pad(off, (0, 1))
+        tip[:, 2] -= self.config.world.depth
+        return vertical_peg_targets(tip, -self.arm.point_offsets[1][2])
+
+    def check_reachable(self, offset: tuple[float, float]) -> None:
+        """Raise :class:`LolgpsError` if the peg cannot be inserted at this hole offset."""
+        targets = self.targets([offset])[0]
+        _, err = solve_ik(self.kinematics, self.arm, targets, margin=0.0)
+        if err > self.config.placement.ik_tolerance:
+            raise LolgpsError(
+                f"hole offset ({offset[0]:+.3f}, {offset[1]:+.3f}) m is out of the arm's reach "
+                f"(best inverse-kinematics error {float(err):.3f} m)"
+            )
+
+    def effective_inertia(self) -> Tensor:
+        """``1 / diag(M(q0)^{-1})`` per actuated joint (kg m^2): the inertia each joint feels."""
+        world = self.sampler.worlds[0]
+        q_all = [0.0] * len(world.movable)
+        for j, i in zip(world.actuated_in_movable, range(self.arm.dof), strict=True):
+            q_all[j] = self.geometry.q0[i]
+        M = torch.tensor(pb.calculateMassMatrix(world.body, q_all, physicsClientId=world.client))
+        idx = torch.tensor(world.actuated_in_movable)
+        Minv = torch.linalg.inv(M)[idx][:, idx]
+        return (1.0 / torch.diagonal(Minv)).to(dtype=torch.float64, device=self.device)
+
+    def sample(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
+        """One rollout per offset, scored by the cost."""
+        x, u, final = self.sampler.rollout(act, offsets)
+        cost = self.cost.evaluate(x, u, self.targets(offsets)[:, None])
+        success = final < self.config.world.success_threshold
+        return Trajectories(x, u, cost, final, success)
+
+    def close(self) -> None:
+        self.sampler.close()

@@ -1,0 +1,155 @@
+"""The peg-insertion world, its kinematics and its cost, against independent answers."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pybullet_data
+import pytest
+import torch
+
+from lolgps_torch.cost.kinematics import PegKinematics
+from lolgps_torch.cost.l12 import to_quadratic
+from lolgps_torch.sim.arm import load_arm
+from lolgps_torch.sim.placement import solve_ik
+from lolgps_torch.sim.rollout import linear_gaussian_actor
+from lolgps_torch.sim.world import PegWorld
+from lolgps_torch.task import PegTask, TaskConfig
+from lolgps_torch.types import LinearGaussian
+
+KUKA = "robots/kuka_peg.urdf"
+PANDA = os.path.join(pybullet_data.getDataPath(), "franka_panda/panda.urdf")
+
+
+@pytest.fixture(scope="module")
+def task() -> PegTask:
+    t = PegTask(TaskConfig(urdf=KUKA), n_worlds=2)
+    yield t
+    t.close()
+
+
+@pytest.mark.parametrize("urdf", [KUKA, PANDA])
+def test_fk_matches_pybullet(urdf: str) -> None:
+    arm = load_arm(urdf)
+    kin = PegKinematics(arm)
+    world = PegWorld(arm, TaskConfig(urdf=urdf).world, (0.6, 0.0, 0.2))
+    rng = np.random.default_rng(0)
+    lo, hi = np.array(arm.lower), np.array(arm.upper)
+    qs = lo + (hi - lo) * rng.random((50, arm.dof))
+    expected = []
+    for q in qs:
+        world.reset(q)
+        expected.append(world.points())
+    world.close()
+    got = kin.points(torch.tensor(qs))
+    assert torch.allclose(got, torch.tensor(np.stack(expected)), atol=1e-6, rtol=0)
+
+
+def test_jacobian_matches_finite_differences(task: PegTask) -> None:
+    kin = task.kinematics
+    q = task.q0 + 0.3 * torch.randn(5, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    eps = 1e-6
+    eye = torch.eye(7, dtype=torch.float64)
+    fd = torch.stack(
+        [(kin.points(q + eps * eye[i]) - kin.points(q - eps * eye[i])).reshape(5, 6) / (2 * eps) for i in range(7)],
+        dim=-1,
+    )
+    assert torch.allclose(kin.jacobian(q), fd, atol=1e-8)
+
+
+def test_cost_gradient_and_gauss_newton_hessian(task: PegTask) -> None:
+    gen = torch.Generator().manual_seed(1)
+    N, T, dX, dU = 2, 3, task.layout.dX, task.layout.dU
+    x = torch.zeros(N, T, dX, dtype=torch.float64)
+    x[..., task.layout.q] = task.q0 + 0.2 * torch.randn(N, T, 7, dtype=torch.float64, generator=gen)
+    u = torch.randn(N, T, dU, dtype=torch.float64, generator=gen)
+    targets = task.targets([(0.01, -0.02)])[0]
+    e = task.cost.expand(x, u, targets)
+    assert torch.allclose(e.l, task.cost.evaluate(x, u, targets))
+
+    def total(y: torch.Tensor) -> torch.Tensor:
+        return task.cost.evaluate(y[..., :dX], y[..., dX:], targets).sum()
+
+    y = torch.cat([x, u], -1).requires_grad_(True)
+    (grad,) = torch.autograd.grad(total(y), y)
+    assert torch.allclose(torch.cat([e.lx, e.lu], -1), grad, atol=1e-8)
+
+    # Gauss-Newton: the exact Hessian of l12(A(p(q_n) + J_n dq - p*)) in dq, which FD checks.
+    q = x[0, 0, task.layout.q]
+    p0, J = task.kinematics.points_and_jacobian(q)
+
+    def linearised(dq: torch.Tensor) -> torch.Tensor:
+        d = p0.reshape(6) + J @ dq - targets.reshape(6)
+        return task.cost._l12(d @ task.cost.A.T)[0]
+
+    H = torch.autograd.functional.hessian(linearised, torch.zeros(7, dtype=torch.float64))
+    assert torch.allclose(e.lxx[0, 0][task.layout.q, task.layout.q], H, atol=1e-6)
+    assert torch.allclose(e.luu[0, 0], torch.diag(task.cost.wu))
+
+    quad = to_quadratic(e, x, u)  # exact at every sample when N = 1
+    e1 = task.cost.expand(x[:1], u[:1], targets)
+    quad1 = to_quadratic(e1, x[:1], u[:1])
+    y1 = torch.cat([x[0], u[0]], -1)
+    value = 0.5 * torch.einsum("ti,tij,tj->t", y1, quad1.C, y1) + (quad1.c * y1).sum(-1) + quad1.cc
+    assert torch.allclose(value, e1.l[0])
+    assert quad.C.shape == (T, dX + dU, dX + dU)
+
+
+def test_state_points_agree_with_kinematics(task: PegTask) -> None:
+    gen = torch.Generator().manual_seed(2)
+    act = lambda t, x, rows: 2.0 * torch.randn(x.shape[0], 7, dtype=torch.float64, generator=gen)  # noqa: E731
+    traj = task.sample(act, [(0.0, 0.0), (0.02, 0.02)])
+    fk = task.kinematics.points(traj.x[..., task.layout.q]) - task.targets([(0.0, 0.0), (0.02, 0.02)])[:, None]
+    assert torch.allclose(traj.x[..., task.layout.points], fk.flatten(-2), atol=1e-6)
+    vel = (traj.x[:, 1:, task.layout.points] - traj.x[:, :-1, task.layout.points]) / task.config.world.dt
+    assert torch.allclose(traj.x[:, 1:, task.layout.point_velocities], vel, atol=1e-9)
+
+
+def test_gravity_compensation_holds_still(task: PegTask) -> None:
+    zero = lambda t, x, rows: torch.zeros(x.shape[0], 7, dtype=torch.float64)  # noqa: E731
+    traj = task.sample(zero, [(0.0, 0.0)])
+    drift = (traj.x[0, :, task.layout.q] - task.q0).abs().max()
+    assert drift < 1e-3
+
+
+def _scripted_insertion(task: PegTask, shift: float) -> float:
+    """Track a joint-space path q0 -> above the hole -> inserted, with the hole shifted in x."""
+    targets = task.targets([(0.0, 0.0)])[0].clone()
+    targets[:, 0] += shift
+    above = targets.clone()
+    above[:, 2] += 0.13
+    q_above, _ = solve_ik(task.kinematics, task.arm, above, 0.0)
+    q_in, _ = solve_ik(task.kinematics, task.arm, targets, 0.0)
+    s = torch.linspace(0, 1, 40, dtype=torch.float64)[:, None]
+    path = torch.cat([task.q0 + (q_above - task.q0) * s, q_above + (q_in - q_above) * s, q_in.expand(20, -1)])
+    m = task.effective_inertia()
+    kp, kd = 100.0 * m, 20.0 * m
+
+    def act(t: int, x: torch.Tensor, rows: slice) -> torch.Tensor:
+        return -kp * (x[:, task.layout.q] - path[t]) - kd * x[:, task.layout.qd]
+
+    return float(task.sample(act, [(0.0, 0.0)]).final_distance[0])
+
+
+def test_hole_is_insertable_and_tight(task: PegTask) -> None:
+    assert _scripted_insertion(task, 0.0) < 0.02
+    # 12 mm sideways, three times the mouth clearance: the peg rests on the table at the mouth
+    assert _scripted_insertion(task, 0.012) > 0.09
+
+
+def test_same_seed_gives_identical_trajectories(task: PegTask) -> None:
+    dU, T = 7, task.T
+    hold = LinearGaussian(
+        torch.zeros(T, dU, task.layout.dX, dtype=torch.float64),
+        torch.zeros(T, dU, dtype=torch.float64),
+        torch.eye(dU, dtype=torch.float64).expand(T, dU, dU) * 4.0,
+    )
+
+    def run(seed: int) -> torch.Tensor:
+        noise = torch.randn(2, T, dU, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+        return task.sample(linear_gaussian_actor(hold, noise), [(0.0, 0.0), (0.01, 0.0)]).x
+
+    a, b = run(3), run(3)
+    assert torch.equal(a, b)
+    assert not torch.equal(a, run(4))
