@@ -1,0 +1,50 @@
+"""Shared command-line plumbing: the arm/task flags every script takes, and one-line errors."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.sim.arm import PegConfig
+from lolgps_torch.sim.placement import PlacementConfig
+from lolgps_torch.task import TaskConfig
+
+
+def add_task_arguments(parser: argparse.ArgumentParser, default_urdf: str | None = None) -> None:
+    """Flags that pick the arm, its peg and its start pose."""
+    group = parser.add_argument_group("arm")
+    group.add_argument("--urdf", required=default_urdf is None, default=default_urdf,
+                       help="the arm's URDF file")
+    group.add_argument("--ee-link", default=None,
+                       help="end-effector link (default: end of the longest actuated chain, "
+                       "or 'peg_tip' when the URDF carries its own peg)")
+    peg = PegConfig()
+    group.add_argument("--peg-length", type=float, default=peg.length,
+                       help="length (m) of the peg attached to arms without one")
+    group.add_argument("--peg-radius", type=float, default=peg.radius,
+                       help="radius (m) of the attached peg")
+    group.add_argument("--peg-axis", default=peg.axis,
+                       help="end-effector link axis the attached peg points along (x, y, z, -x, ...)")
+    group.add_argument("--q0", type=float, nargs="+", default=None,
+                       help="start pose (rad); default: derived by inverse kinematics")
+
+
+def task_config(args: argparse.Namespace) -> TaskConfig:
+    """The :class:`TaskConfig` the arm flags describe."""
+    peg = PegConfig(length=args.peg_length, radius=args.peg_radius, axis=args.peg_axis)
+    placement = PlacementConfig(q0=tuple(args.q0) if args.q0 else None)
+    return TaskConfig(urdf=args.urdf, ee_link=args.ee_link, peg=peg, placement=placement)
+
+
+def run(main: Callable[[], None]) -> None:
+    """Run a script's main: a :class:`LolgpsError` becomes one ``error:`` line and exit 2."""
+    try:
+        main()
+    except LolgpsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)

@@ -1,0 +1,148 @@
+"""The trajectory-centric learner of one condition (ALGORITHM.md sections 3-5).
+
+Each iteration: sample N rollouts of the acting controller, fit time-varying linear
+dynamics with the GMM prior, expand the cost around the samples, and take the C-step
+
+    p_cur <- argmin_p E_p[sum_t l(x_t, u_t)]  s.t.  KL(p || p_bar) <= epsilon   (paper eq. 7)
+
+with p_bar = p_pre (the linearised global policy) when there is one, else the previous
+p_cur (the classic trust region).  epsilon = kl_step * step_mult * T, and step_mult adapts
+from the predicted against the actual improvement of the expected cost.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.controllers import hold_controller, mix, smoothed_noise
+from lolgps_torch.cost.l12 import to_quadratic
+from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
+from lolgps_torch.sim.rollout import linear_gaussian_actor
+from lolgps_torch.task import PegTask
+from lolgps_torch.trajopt import CStepConfig, adapt_step_mult, c_step, kl_bound, laplace_cost
+from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost, Trajectories
+
+
+@dataclass(frozen=True)
+class LocalConfig:
+    """Settings of the per-condition learner.
+
+    :param samples: rollouts per iteration (N).
+    :param init_variance: initial exploration variance, in (torque / effective inertia)^2,
+        i.e. joint accelerations (rad/s^2)^2, so one value fits arms of any size.
+    :param init_omega: natural frequency (rad/s) of the soft PD hold of the start pose;
+        gains ``kp = m omega^2``, ``kd = 2 m omega`` with m each joint's effective inertia.
+    :param noise_smoothing: width (steps) of the Gaussian filter on the exploration noise.
+    :param cstep: the C-step's settings. :param dynamics: the dynamics fit's settings.
+    """
+
+    samples: int = 5
+    init_variance: float = 4.0
+    init_omega: float = 2.0
+    noise_smoothing: float = 2.0
+    cstep: CStepConfig = field(default_factory=CStepConfig)
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+
+
+class Fit(NamedTuple):
+    """What one iteration learned about its condition: the sampled controller, the dynamics
+    and the cost expansion around its samples."""
+
+    controller: LinearGaussian
+    dynamics: LinearDynamics
+    cost: QuadraticCost
+
+
+class Iteration(NamedTuple):
+    """One iteration's samples and numbers (times in seconds)."""
+
+    samples: Trajectories
+    epsilon: float
+    eta: float
+    kl: float
+    step_mult: float
+    time_sample: float
+    time_fit: float
+    time_cstep: float
+
+
+def initial_controller(task: PegTask, config: LocalConfig) -> LinearGaussian:
+    """Soft PD hold of q0 with exploration noise, scaled by each joint's effective inertia."""
+    m = task.effective_inertia()
+    lay = task.layout
+    return hold_controller(
+        task.T,
+        lay.dX,
+        lay.q,
+        lay.qd,
+        task.q0,
+        kp=m * config.init_omega**2,
+        kd=2.0 * m * config.init_omega,
+        variance=config.init_variance * m**2,
+    )
+
+
+class LocalLearner:
+    """p_cur, its dynamics model and its step size, for one condition (a hole offset)."""
+
+    def __init__(
+        self, task: PegTask, offset: tuple[float, float], config: LocalConfig, seed: int
+    ) -> None:
+        self.task, self.offset, self.config = task, offset, config
+        self.generator = torch.Generator().manual_seed(seed)
+        self.p_cur = initial_controller(task, config)
+        self.fitter = DynamicsFitter(config.dynamics)
+        self.step_mult = config.cstep.step_mult_init
+        self.previous: Fit | None = None
+        self.targets = task.targets([offset])[0]
+
+    def sample(self, p_act: LinearGaussian) -> Trajectories:
+        """N rollouts of ``p_act`` at this condition."""
+        T, dU = self.task.T, self.task.layout.dU
+        noise = smoothed_noise(
+            self.config.samples, T, dU, self.config.noise_smoothing, self.generator
+        ).to(self.task.device)
+        actor = linear_gaussian_actor(p_act, noise)
+        return self.task.sample(actor, [self.offset] * self.config.samples)
+
+    def fit(self, p_act: LinearGaussian, samples: Trajectories) -> Fit:
+        """Dynamics and cost expansion around the new samples; adapts the step size."""
+        dynamics = self.fitter.update(samples.x, samples.u)
+        expansion = self.task.cost.expand(samples.x, samples.u, self.targets)
+        fit = Fit(p_act, dynamics, to_quadratic(expansion, samples.x, samples.u))
+        if self.previous is not None:
+            prev = self.previous
+            self.step_mult = adapt_step_mult(
+                self.step_mult,
+                laplace_cost(prev.controller, prev.dynamics, prev.cost),
+                laplace_cost(p_act, prev.dynamics, prev.cost),
+                laplace_cost(p_act, dynamics, fit.cost),
+                self.config.cstep,
+            )
+        self.previous = fit
+        return fit
+
+    def improve(self, fit: Fit, p_bar: LinearGaussian) -> tuple[float, float, float]:
+        """The C-step against ``p_bar``; returns (epsilon, eta, KL)."""
+        epsilon = kl_bound(self.step_mult, self.task.T, self.config.cstep)
+        result = c_step(fit.cost, fit.dynamics, p_bar, epsilon, self.config.cstep)
+        self.p_cur = result.policy
+        return epsilon, float(result.eta), float(result.kl.sum())
+
+    def iteration(self, p_pre: LinearGaussian | None = None, alpha: float | Tensor = 0.0) -> Iteration:
+        """Sample with p_act = alpha p_pre + (1 - alpha) p_cur (p_cur alone without p_pre),
+        fit, and take the C-step against p_pre (or the previous p_cur)."""
+        p_act = self.p_cur if p_pre is None else mix(p_pre, self.p_cur, alpha)
+        t0 = time.perf_counter()
+        samples = self.sample(p_act)
+        t1 = time.perf_counter()
+        fit = self.fit(p_act, samples)
+        t2 = time.perf_counter()
+        epsilon, eta, kl = self.improve(fit, self.p_cur if p_pre is None else p_pre)
+        t3 = time.perf_counter()
+        return Iteration(samples, epsilon, eta, kl, self.step_mult, t1 - t0, t2 - t1, t3 - t2)
