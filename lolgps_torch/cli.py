@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable
+
+import torch
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.sim.arm import PegConfig
@@ -39,7 +42,12 @@ def task_config(args: argparse.Namespace) -> TaskConfig:
 
 
 def run(main: Callable[[], None]) -> None:
-    """Run a script's main: a :class:`LolgpsError` becomes one ``error:`` line and exit 2."""
+    """Run a script's main: a :class:`LolgpsError` becomes one ``error:`` line and exit 2.
+
+    Torch runs on one intra-op thread (``LOLGPS_THREADS`` overrides): the tensors here are
+    small, and a second thread only contends with the simulator and with parallel workers.
+    """
+    torch.set_num_threads(int(os.environ.get("LOLGPS_THREADS", "1")))
     try:
         main()
     except LolgpsError as exc:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import pybullet as pb
 import torch
@@ -98,3 +99,18 @@ class PegTask:
 
     def close(self) -> None:
         self.sampler.close()
+
+
+def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:
+    """Inverse of ``dataclasses.asdict`` for :class:`TaskConfig` (as saved in config.json)."""
+    placement = dict(d["placement"])
+    placement["start_offset"] = tuple(placement["start_offset"])
+    placement["q0"] = tuple(placement["q0"]) if placement["q0"] is not None else None
+    return TaskConfig(
+        urdf=d["urdf"],
+        ee_link=d["ee_link"],
+        peg=PegConfig(**d["peg"]),
+        world=WorldConfig(**d["world"]),
+        placement=PlacementConfig(**placement),
+        cost=CostConfig(**d["cost"]),
+    )

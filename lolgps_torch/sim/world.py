@@ -82,6 +82,8 @@ class PegWorld:
         self.effort = np.asarray(arm.effort, dtype=np.float64)
         self.targets = np.zeros((2, 3))
         self._prev_points = np.zeros(6)
+        self._points = np.zeros(6)
+        self._q_all: list[float] = [0.0] * len(self.movable)
         self.set_hole((0.0, 0.0))
 
     def _index_joints(self) -> None:
@@ -169,29 +171,32 @@ class PegWorld:
         for j, qj in zip(self.joint_ids, q0, strict=True):
             pb.resetJointState(self.body, j, float(qj), 0.0, physicsClientId=self.client)
         self._prev_points = (self.points() - self.targets).reshape(6)
-        return self.observe()
+        return self.observe()  # zero point velocity at rest
 
     def observe(self) -> np.ndarray:
         """The state vector ``[dX]`` (see :class:`StateLayout`)."""
-        states = pb.getJointStates(self.body, self.joint_ids, physicsClientId=self.client)
-        q = np.array([s[0] for s in states])
-        qd = np.array([s[1] for s in states])
+        c = self.client
+        states = pb.getJointStates(self.body, self.movable, physicsClientId=c)
+        self._q_all = [s[0] for s in states]
+        q = np.array([states[i][0] for i in self.actuated_in_movable])
+        qd = np.array([states[i][1] for i in self.actuated_in_movable])
         pts = (self.points() - self.targets).reshape(6)
         vel = (pts - self._prev_points) / self.config.dt
+        self._points = pts
         return np.concatenate([q, qd, pts, vel])
 
     def step(self, u: np.ndarray) -> np.ndarray:
-        """Apply torque ``u`` (on top of gravity compensation) for one control step."""
+        """Apply torque ``u`` (on top of gravity compensation) for one control step, starting
+        from the state the last :meth:`reset`, :meth:`observe` or :meth:`step` returned."""
         c = self.client
         if not np.all(np.isfinite(u)):
             raise LolgpsError("non-finite action: the controller produced NaN or inf torques")
-        pos = [s[0] for s in pb.getJointStates(self.body, self.movable, physicsClientId=c)]
         zeros = [0.0] * len(self.movable)
         g = np.asarray(
-            pb.calculateInverseDynamics(self.body, pos, zeros, zeros, physicsClientId=c)
+            pb.calculateInverseDynamics(self.body, self._q_all, zeros, zeros, physicsClientId=c)
         )[self.actuated_in_movable]
         tau = np.clip(u + g, -self.effort, self.effort).tolist()
-        self._prev_points = (self.points() - self.targets).reshape(6)
+        self._prev_points = self._points
         for _ in range(self.config.substeps):
             pb.setJointMotorControlArray(
                 self.body, self.joint_ids, pb.TORQUE_CONTROL, forces=tau, physicsClientId=c

@@ -1,0 +1,105 @@
+"""Benchmarks, each reported as a ratio to a reference measured in the same run.
+
+    python scripts/bench.py [--urdf robots/kuka_peg.urdf] [--repeats 5] [--only NAME ...]
+
+- physics:   raw PyBullet stepping rate of this world (substeps/s: the same worlds, the arm
+             held at q0 by constant gravity torques sent every substep, nothing else) against
+             the rollout pipeline (initial controller, smoothed noise, gravity compensation,
+             state extraction, cost) from the same pose, as a ratio.
+- algorithm: one dynamics fit (GMM + per-step regression) and one C-step with its dual
+             search at the task's sizes, as ratios to the sampling time of the same iteration.
+Medians over the repeats; the machine is noisy, so compare ratios, not seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+
+import pybullet as pb
+import torch
+
+from lolgps_torch.cli import run
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.task import PegTask, TaskConfig
+
+
+def median_time(fn: Callable[[], object], repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def bench_physics(task: PegTask, repeats: int) -> dict[str, float]:
+    """Substeps per second: bare stepping vs the full rollout pipeline, same worlds."""
+    worlds = task.sampler.worlds
+    T, substeps = task.T, task.config.world.substeps
+    q0 = task.q0.numpy()
+    w0 = worlds[0]
+    zeros = [0.0] * len(w0.movable)
+    w0.reset(q0)
+    gravity = pb.calculateInverseDynamics(w0.body, w0._q_all, zeros, zeros, physicsClientId=w0.client)
+    tau = [gravity[i] for i in w0.actuated_in_movable]  # holds q0, as the pipeline's controller does
+
+    def raw() -> None:
+        for w in worlds:
+            w.reset(q0)
+            for _ in range(T * substeps):
+                pb.setJointMotorControlArray(w.body, w.joint_ids, pb.TORQUE_CONTROL, forces=tau,
+                                             physicsClientId=w.client)
+                pb.stepSimulation(physicsClientId=w.client)
+
+    learner = LocalLearner(task, (0.0, 0.0), LocalConfig(samples=len(worlds)), seed=0)
+
+    def pipeline() -> None:
+        learner.sample(learner.p_cur)
+
+    n = len(worlds) * T * substeps
+    raw_rate = n / median_time(raw, repeats)
+    pipe_rate = n / median_time(pipeline, repeats)
+    return {"raw_substeps_per_s": raw_rate, "pipeline_substeps_per_s": pipe_rate,
+            "pipeline_over_raw": pipe_rate / raw_rate}
+
+
+def bench_algorithm(task: PegTask, repeats: int) -> dict[str, float]:
+    """Fit and C-step times against the sampling time of the same iteration (median)."""
+    learner = LocalLearner(task, (0.0, 0.0), LocalConfig(samples=len(task.sampler.worlds)), seed=0)
+    rows = []
+    for _ in range(max(repeats, 5)):
+        it = learner.iteration()
+        rows.append((it.time_sample, it.time_fit, it.time_cstep))
+    rows = rows[1:]  # the first iteration has no warm-started GMM
+    sample = statistics.median(r[0] for r in rows)
+    fit = statistics.median(r[1] for r in rows)
+    cstep = statistics.median(r[2] for r in rows)
+    return {"sample_s": sample, "fit_s": fit, "cstep_s": cstep,
+            "fit_over_sample": fit / sample, "cstep_over_sample": cstep / sample,
+            "algorithm_over_sample": (fit + cstep) / sample}
+
+
+BENCHES = {"physics": bench_physics, "algorithm": bench_algorithm}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--urdf", default="robots/kuka_peg.urdf")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
+    args = parser.parse_args()
+    task = PegTask(TaskConfig(urdf=args.urdf), n_worlds=5)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    for name in args.only or BENCHES:
+        results = BENCHES[name](task, args.repeats)
+        print(f"[{name}]")
+        for key, value in results.items():
+            print(f"  {key:<28}{value:12.4g}")
+    task.close()
+
+
+if __name__ == "__main__":
+    run(main)
