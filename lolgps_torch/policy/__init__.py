@@ -1,0 +1,16 @@
+"""The global policy (ALGORITHM.md sections 6-7): the net, its linearisation ``p_pre`` and the
+S-step."""
+
+from lolgps_torch.policy.linearize import linearize_policy
+from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
+from lolgps_torch.policy.sstep import DistillBatch, distill, kl_loss, optimal_variance
+
+__all__ = [
+    "DistillBatch",
+    "GaussianPolicy",
+    "PolicyConfig",
+    "distill",
+    "kl_loss",
+    "linearize_policy",
+    "optimal_variance",
+]

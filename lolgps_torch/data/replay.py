@@ -1,0 +1,271 @@
+"""HDF5 replay of the successful trajectories ``D_g`` of each condition, with their distillation
+targets (ALGORITHM.md section 7), so later S-steps remember earlier conditions.
+
+File layout: root attributes ``format`` and ``version``; one group per condition,
+``condition_000``, ``condition_001``, ..., each holding (M samples, T steps)
+    ``x [M, T, dX]``, ``u [M, T, dU]``, ``cost [M, T]``, ``final_distance [M]``,
+    ``mean_cur [M, T, dU]``, ``prec_cur [M, T, dU, dU]``, ``mean_pre [M, T, dU]``,
+    ``prec_pre [M, T, dU, dU]`` (float64, zeros where absent), ``has_pre [M]`` (bool),
+and attributes ``condition`` (index), ``offset`` (hole offset dx, dy in m), ``iterations``.
+Datasets are chunked per sample, gzip-compressed and fletcher32-checksummed, in the HDF5 1.10
+file format (whose metadata is checksummed too), so damage is reported on read rather than
+returned as data. A group is written once and never changed.
+
+Layout of the tensors: sample-first ``[M, T, ...]``; numpy appears only at the file boundary.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import NamedTuple
+
+import h5py
+import numpy as np
+import torch
+from torch import Tensor
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.policy.sstep import DistillBatch
+
+FORMAT = "lolgps_torch.replay"
+VERSION = 1
+GROUP_PREFIX = "condition_"
+
+
+class ConditionSamples(NamedTuple):
+    """The successful samples of one condition with their targets at sample time.
+
+    x: ``[M, T, dX]``, u: ``[M, T, dU]``, cost: ``[M, T]``, final_distance: ``[M]``,
+    mean_cur / mean_pre: ``[M, T, dU]`` action means of p_cur / p_pre at ``x``,
+    prec_cur / prec_pre: ``[M, T, dU, dU]`` their precisions, has_pre: ``[M]`` bool (false where
+    no p_pre existed; its mean and precision are then zeros).
+    """
+
+    x: Tensor
+    u: Tensor
+    cost: Tensor
+    final_distance: Tensor
+    mean_cur: Tensor
+    prec_cur: Tensor
+    mean_pre: Tensor
+    prec_pre: Tensor
+    has_pre: Tensor
+
+    def to_batch(self) -> DistillBatch:
+        """Flatten samples and time into the rows of a :class:`DistillBatch` (``M T`` rows)."""
+        M, T, dX = self.x.shape
+        dU = self.mean_cur.shape[-1]
+        return DistillBatch(
+            x=self.x.reshape(M * T, dX),
+            mean_cur=self.mean_cur.reshape(M * T, dU),
+            prec_cur=self.prec_cur.reshape(M * T, dU, dU),
+            mean_pre=self.mean_pre.reshape(M * T, dU),
+            prec_pre=self.prec_pre.reshape(M * T, dU, dU),
+            has_pre=self.has_pre.repeat_interleave(T),
+        )
+
+
+class ConditionRecord(NamedTuple):
+    """One stored condition: its index ``condition``, hole offset ``(dx, dy)`` (m), the number
+    of iterations it took, and its samples."""
+
+    condition: int
+    offset: tuple[float, float]
+    iterations: int
+    samples: ConditionSamples
+
+
+def _group_name(index: int) -> str:
+    return f"{GROUP_PREFIX}{index:03d}"
+
+
+def _expected_shapes(samples: ConditionSamples) -> dict[str, tuple[int, ...]]:
+    M, T, dX = samples.x.shape
+    dU = samples.u.shape[-1]
+    return {
+        "x": (M, T, dX),
+        "u": (M, T, dU),
+        "cost": (M, T),
+        "final_distance": (M,),
+        "mean_cur": (M, T, dU),
+        "prec_cur": (M, T, dU, dU),
+        "mean_pre": (M, T, dU),
+        "prec_pre": (M, T, dU, dU),
+        "has_pre": (M,),
+    }
+
+
+def _to_numpy(samples: ConditionSamples) -> dict[str, np.ndarray]:
+    """Validate shapes and convert to float64 (``has_pre`` bool) numpy arrays."""
+    if samples.x.ndim != 3 or samples.u.ndim != 3:
+        raise LolgpsError(
+            f"replay samples need x [M, T, dX] and u [M, T, dU], got "
+            f"{tuple(samples.x.shape)} and {tuple(samples.u.shape)}"
+        )
+    arrays: dict[str, np.ndarray] = {}
+    for name, want in _expected_shapes(samples).items():
+        tensor = getattr(samples, name).detach().cpu()
+        if tuple(tensor.shape) != want:
+            raise LolgpsError(
+                f"replay samples: {name} has shape {tuple(tensor.shape)}, expected {want}"
+            )
+        dtype = torch.bool if name == "has_pre" else torch.float64
+        arrays[name] = tensor.to(dtype).numpy()
+    return arrays
+
+
+def _stored_conditions(f: h5py.File) -> list[int]:
+    # Indexing by name (not f.values(), which yields None for an unreadable object) makes a
+    # damaged group raise.
+    return sorted(int(f[name].attrs["condition"]) for name in f)
+
+
+def _fsync(path: Path) -> None:
+    """Flush ``path`` (a file or a directory) to disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _one_line(error: BaseException) -> str:
+    text = str(error.args[0] if error.args else error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
+class ReplayBuffer:
+    """The replay ``D_g`` of all conditions so far, in one HDF5 file at ``path``.
+
+    Appending is atomic: the current file is copied to ``<name>.partial`` in the same folder,
+    the new group is written there, the copy is closed and fsynced and then ``os.replace``-d onto
+    ``path``. A crash at any point (even SIGKILL) leaves the previous file untouched; earlier
+    groups are copied byte for byte. One writer per file: a stale ``.partial`` from a crash is
+    overwritten by the next append.
+
+    :param path: the HDF5 file (need not exist yet: an absent file is an empty replay).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+
+    @contextmanager
+    def _open(self) -> Iterator[h5py.File]:
+        """Open for reading; an HDF5 failure (corrupt or truncated file) -> LolgpsError. h5py
+        raises OSError for file and data errors, KeyError for unreadable objects."""
+        try:
+            with h5py.File(self.path, "r") as f:
+                if f.attrs.get("format") != FORMAT:
+                    raise LolgpsError(f"{self.path} is not a lolgps_torch replay file")
+                yield f
+        except (OSError, KeyError) as error:
+            raise LolgpsError(f"cannot read replay {self.path}: {_one_line(error)}") from error
+
+    def conditions(self) -> list[int]:
+        """Stored condition indices, ascending (empty if the file does not exist)."""
+        if not self.path.exists():
+            return []
+        with self._open() as f:
+            return _stored_conditions(f)
+
+    def append_condition(
+        self,
+        index: int,
+        offset: tuple[float, float],
+        samples: ConditionSamples,
+        iterations: int,
+    ) -> None:
+        """Add condition ``index`` as a new group, atomically; refuses to overwrite one.
+
+        :param index: condition index (>= 0).
+        :param offset: hole offset ``(dx, dy)`` of the condition (m).
+        :param samples: its successful samples and their targets.
+        :param iterations: inner-loop iterations the condition used.
+        """
+        if index < 0:
+            raise LolgpsError(f"condition index must be >= 0, got {index}")
+        arrays = _to_numpy(samples)
+        name = _group_name(index)
+        existing = self.path.exists()
+        if existing:
+            with self._open() as f:
+                if name in f:
+                    raise LolgpsError(f"replay {self.path} already holds condition {index}")
+                self._check_sizes(f, arrays)
+        tmp = self.path.with_name(self.path.name + ".partial")
+        try:
+            if existing:
+                shutil.copyfile(self.path, tmp)
+            with h5py.File(tmp, "a" if existing else "w", libver="v110") as f:
+                f.attrs["format"] = FORMAT
+                f.attrs["version"] = VERSION
+                group = f.create_group(name)
+                group.attrs["condition"] = index
+                group.attrs["offset"] = np.asarray(offset, dtype=np.float64)
+                group.attrs["iterations"] = iterations
+                for key, array in arrays.items():
+                    group.create_dataset(
+                        key,
+                        data=array,
+                        chunks=(1, *array.shape[1:]) if array.ndim > 1 else True,
+                        maxshape=(None, *array.shape[1:]),
+                        compression="gzip",
+                        fletcher32=True,
+                    )
+            _fsync(tmp)
+            os.replace(tmp, self.path)
+            _fsync(self.path.parent)
+        except OSError as error:
+            raise LolgpsError(f"cannot write replay {self.path}: {_one_line(error)}") from error
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    def _check_sizes(self, f: h5py.File, arrays: dict[str, np.ndarray]) -> None:
+        """New samples must have the state and action sizes of the stored ones."""
+        for name in f:
+            for key in ("x", "u"):
+                stored, new = f[name][key].shape[-1], arrays[key].shape[-1]
+                if stored != new:
+                    raise LolgpsError(
+                        f"replay {self.path} holds {key} of size {stored}, got size {new}"
+                    )
+
+    def read_condition(self, index: int, device: torch.device | str = "cpu") -> ConditionRecord:
+        """One condition's attributes and raw tensors (float64, ``has_pre`` bool) on ``device``."""
+        with self._open() as f:
+            return self._read(f, index, device)
+
+    def _read(self, f: h5py.File, index: int, device: torch.device | str) -> ConditionRecord:
+        name = _group_name(index)
+        if name not in f:
+            raise LolgpsError(f"replay {self.path} holds no condition {index}")
+        group = f[name]
+        tensors = {
+            key: torch.from_numpy(group[key][()]).to(device) for key in ConditionSamples._fields
+        }
+        dx, dy = (float(v) for v in group.attrs["offset"])
+        return ConditionRecord(
+            condition=int(group.attrs["condition"]),
+            offset=(dx, dy),
+            iterations=int(group.attrs["iterations"]),
+            samples=ConditionSamples(**tensors),
+        )
+
+    def load(
+        self, indices: list[int] | None = None, device: torch.device | str = "cpu"
+    ) -> DistillBatch:
+        """The S-step rows of the given conditions (default: all), flattened over samples and
+        time and concatenated in the order given, as float64 tensors on ``device``."""
+        if not self.path.exists():
+            raise LolgpsError(f"replay {self.path} does not exist")
+        with self._open() as f:
+            if indices is None:
+                indices = _stored_conditions(f)
+            if not indices:
+                raise LolgpsError(f"replay {self.path} holds no conditions")
+            batches = [self._read(f, index, device).samples.to_batch() for index in indices]
+        return DistillBatch(*(torch.cat(fields) for fields in zip(*batches, strict=True)))

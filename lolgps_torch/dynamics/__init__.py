@@ -1,0 +1,14 @@
+"""Dynamics fitting (ALGORITHM.md section 4): GMM, normal-inverse-Wishart prior, per-step fit."""
+
+from lolgps_torch.dynamics.fit import DynamicsConfig, DynamicsFitter, gaussian_regression
+from lolgps_torch.dynamics.gmm import GaussianMixture
+from lolgps_torch.dynamics.prior import GMMPrior, NIWPrior
+
+__all__ = [
+    "DynamicsConfig",
+    "DynamicsFitter",
+    "GMMPrior",
+    "GaussianMixture",
+    "NIWPrior",
+    "gaussian_regression",
+]

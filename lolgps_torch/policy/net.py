@@ -1,0 +1,187 @@
+"""The global policy ``pi_theta(u | x) = N(mu_theta(x), diag(sigma^2))`` (ALGORITHM.md section 7).
+
+Layout: states ``[..., dX]`` map to action means ``[..., dU]``; any leading dimensions (samples,
+time) pass through. Parameters and buffers are float64.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pickle
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.errors import LolgpsError
+
+WEIGHTS_FILE = "policy.pt"
+CONFIG_FILE = "policy.json"
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """Global policy and S-step (paper section 4; ALGORITHM.md sections 7 and 10).
+
+    :param hidden_sizes: widths of the ReLU hidden layers (paper: 5 layers, 42 units each, i.e.
+        input -> 4 x 42 ReLU -> dU).
+    :param learning_rate: Adam step size (original GPS: 1e-3).
+    :param batch_size: rows per Adam minibatch.
+    :param steps: Adam steps per S-step; with ``batch_size`` 64 about 13 passes over 10k rows
+        (the original GPS: 4000 steps of 25).
+    :param std_floor: lower bound on the whitening standard deviation, so constant state
+        dimensions (zero variance) do not divide by zero.
+    :param seed: seed of the weight initialisation and of the S-step's minibatch draws.
+    :param num_threads: torch intra-op threads during the S-step's Adam loop (None: leave
+        torch's setting). Its matrices are too small to gain from threads, and on busy cores
+        each parallel region waits for a descheduled thread: with 2 threads on 2 loaded cores a
+        step took ~20x longer than with 1.
+    """
+
+    hidden_sizes: tuple[int, ...] = (42, 42, 42, 42)
+    learning_rate: float = 1e-3
+    batch_size: int = 64
+    steps: int = 2000
+    std_floor: float = 1e-3
+    seed: int = 0
+    num_threads: int | None = 1
+
+
+def _mlp(
+    dX: int, dU: int, hidden_sizes: tuple[int, ...], generator: torch.Generator
+) -> torch.nn.Sequential:
+    """``dX -> hidden (ReLU) ... -> dU`` in float64, with torch's default ``Linear`` initialisation
+    (weights ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, biases alike) drawn from ``generator``."""
+    sizes = (dX, *hidden_sizes, dU)
+    layers: list[torch.nn.Module] = []
+    for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
+        linear = torch.nn.Linear(fan_in, fan_out, dtype=torch.float64)
+        bound = 1.0 / math.sqrt(fan_in)
+        with torch.no_grad():
+            linear.weight.uniform_(-bound, bound, generator=generator)
+            linear.bias.uniform_(-bound, bound, generator=generator)
+        layers += [linear, torch.nn.ReLU()]
+    return torch.nn.Sequential(*layers[:-1])
+
+
+def _write_atomic(path: Path, write: Callable[[Path], object]) -> None:
+    """Write ``path`` through a temporary sibling and ``os.replace``, so readers never see a
+    partial file. ``write`` is called with the temporary path."""
+    tmp = path.with_name(path.name + ".partial")
+    try:
+        write(tmp)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+class GaussianPolicy(torch.nn.Module):
+    """``pi_theta(u | x) = N(mu_theta(x), diag(sigma^2))`` with
+    ``mu_theta(x) = MLP((x - x_mean) / x_std)``.
+
+    The whitening buffers (``x_mean``, ``x_std``, the latter floored at ``std_floor``) and the
+    action variance ``sigma^2`` are set by the S-step: the first from the training states, the
+    second in closed form (see :func:`lolgps_torch.policy.sstep.distill`); the MLP weights by
+    Adam. ``trained`` (a buffer, so it survives save/load) says whether an S-step has run.
+
+    :param dX: state size. :param dU: action size.
+    :param config: architecture and training settings (defaults: :class:`PolicyConfig`).
+    :param device: where parameters and buffers live.
+    """
+
+    x_mean: Tensor
+    x_std: Tensor
+    variance: Tensor
+    trained_flag: Tensor
+
+    def __init__(
+        self,
+        dX: int,
+        dU: int,
+        config: PolicyConfig | None = None,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        super().__init__()
+        self.config = config if config is not None else PolicyConfig()
+        self.dX, self.dU = dX, dU
+        generator = torch.Generator().manual_seed(self.config.seed)
+        self.net: torch.nn.Module = _mlp(dX, dU, self.config.hidden_sizes, generator)
+        self.register_buffer("x_mean", torch.zeros(dX, dtype=torch.float64))
+        self.register_buffer("x_std", torch.ones(dX, dtype=torch.float64))
+        self.register_buffer("variance", torch.ones(dU, dtype=torch.float64))  # diag(Sigma_pi)
+        self.register_buffer("trained_flag", torch.zeros((), dtype=torch.bool))
+        self.to(device)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """Action mean ``mu_theta(x)``: ``[..., dX] -> [..., dU]``."""
+        return self.net((x - self.x_mean) / self.x_std)
+
+    def covariance(self) -> Tensor:
+        """``Sigma_pi = diag(sigma^2)``, ``[dU, dU]``."""
+        return torch.diag(self.variance)
+
+    @property
+    def trained(self) -> bool:
+        """Whether an S-step has fitted this policy (before that there is no ``p_pre``)."""
+        return bool(self.trained_flag)
+
+    @trained.setter
+    def trained(self, value: bool) -> None:
+        self.trained_flag.fill_(value)
+
+    @torch.no_grad()
+    def set_whitening(self, x: Tensor) -> None:
+        """Whitening from states ``x: [M, dX]``: mean and std (biased, floored at ``std_floor``)."""
+        if x.ndim != 2 or x.shape[1] != self.dX or x.shape[0] < 1:
+            raise LolgpsError(f"whitening needs states [M >= 1, {self.dX}], got {tuple(x.shape)}")
+        self.x_mean.copy_(x.mean(0))
+        self.x_std.copy_(x.std(0, correction=0).clamp_min(self.config.std_floor))
+
+    @torch.no_grad()
+    def set_variance(self, variance: Tensor) -> None:
+        """Set the diagonal ``sigma^2: [dU]`` of ``Sigma_pi`` (positive)."""
+        if variance.shape != (self.dU,) or not bool(((variance > 0) & variance.isfinite()).all()):
+            raise LolgpsError(
+                f"policy variance must be finite and positive [{self.dU}], got {variance}"
+            )
+        self.variance.copy_(variance)
+
+    def save(self, directory: str | Path) -> None:
+        """Write ``policy.pt`` (the state dict) and ``policy.json`` (dX, dU, config) into
+        ``directory`` (created if missing), each atomically."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        state = {name: tensor.detach().cpu() for name, tensor in self.state_dict().items()}
+        _write_atomic(directory / WEIGHTS_FILE, lambda tmp: torch.save(state, tmp))
+        meta = json.dumps({"dX": self.dX, "dU": self.dU, "config": asdict(self.config)}, indent=2)
+        _write_atomic(directory / CONFIG_FILE, lambda tmp: tmp.write_text(meta + "\n"))
+
+    @classmethod
+    def load(cls, directory: str | Path, device: torch.device | str = "cpu") -> GaussianPolicy:
+        """Rebuild a policy saved by :meth:`save` (weights loaded with ``weights_only=True``)."""
+        directory = Path(directory)
+        try:
+            meta = json.loads((directory / CONFIG_FILE).read_text())
+            config = PolicyConfig(
+                **{**meta["config"], "hidden_sizes": tuple(meta["config"]["hidden_sizes"])}
+            )
+            policy = cls(int(meta["dX"]), int(meta["dU"]), config, device)
+            state = torch.load(directory / WEIGHTS_FILE, map_location=device, weights_only=True)
+            policy.load_state_dict(state)
+        except (
+            OSError,
+            ValueError,
+            KeyError,
+            TypeError,
+            RuntimeError,
+            pickle.UnpicklingError,
+        ) as error:
+            message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
+            raise LolgpsError(f"cannot load policy from {directory}: {message}") from error
+        return policy

@@ -1,0 +1,193 @@
+"""The S-step: distil the local controllers into the global policy (paper eq. 8).
+
+    pi_theta <- argmin_theta  E_{x in D_g} [ KL(pi_theta(.|x) || p_cur(.|x))
+                                             + KL(pi_theta(.|x) || p_pre(.|x)) ]
+
+Layout: rows are states flattened over samples and time, ``[M, ...]``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
+
+
+class DistillBatch(NamedTuple):
+    """States of successful samples with the two controllers' action Gaussians at those states.
+
+    x: ``[M, dX]``; mean_cur, mean_pre: ``[M, dU]`` (``K_t x + k_t`` of p_cur and p_pre);
+    prec_cur, prec_pre: ``[M, dU, dU]`` (``cov_t^{-1}``); has_pre: ``[M]`` bool, false where no
+    p_pre existed (before the first S-step), where only ``KL(pi || p_cur)`` counts and
+    ``mean_pre`` and ``prec_pre`` are ignored (zeros by convention).
+    """
+
+    x: Tensor
+    mean_cur: Tensor
+    prec_cur: Tensor
+    mean_pre: Tensor
+    prec_pre: Tensor
+    has_pre: Tensor
+
+    @property
+    def M(self) -> int:
+        return int(self.x.shape[0])
+
+
+def _check(batch: DistillBatch) -> None:
+    M, dU = batch.mean_cur.shape
+    shapes = {
+        "x": (batch.x.shape[:1], (M,)),
+        "prec_cur": (batch.prec_cur.shape, (M, dU, dU)),
+        "mean_pre": (batch.mean_pre.shape, (M, dU)),
+        "prec_pre": (batch.prec_pre.shape, (M, dU, dU)),
+        "has_pre": (batch.has_pre.shape, (M,)),
+    }
+    for name, (got, want) in shapes.items():
+        if tuple(got) != want:
+            raise LolgpsError(f"distillation batch: {name} has shape {tuple(got)}, expected {want}")
+    if M == 0:
+        raise LolgpsError("distillation batch is empty: no successful samples to distil")
+
+
+def _quadratic(diff: Tensor, prec: Tensor) -> Tensor:
+    """``d_m^T P_m d_m`` for ``diff: [M, dU]``, ``prec: [M, dU, dU]`` -> ``[M]``."""
+    return (diff.unsqueeze(-2) @ prec @ diff.unsqueeze(-1)).flatten()
+
+
+def _logdet_pd(matrix: Tensor, name: str) -> Tensor:
+    """``log det A`` of symmetric positive definite ``A: [..., n, n]`` via its Cholesky factor."""
+    chol, info = torch.linalg.cholesky_ex(matrix)
+    if bool(info.any()):
+        rows = info.nonzero().flatten().tolist()
+        raise LolgpsError(f"{name} is not positive definite (rows {rows[:5]} ...)")
+    return 2.0 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+
+
+def _constant_terms(policy_cov: Tensor, prec: Tensor, name: str) -> Tensor:
+    """The mean-independent part of ``KL(pi || p)``,
+    ``1/2 [tr(P Sigma_pi) - dU - log det P - log det Sigma_pi]`` -> ``[M]``."""
+    dU = policy_cov.shape[-1]
+    trace = torch.einsum("mij,ji->m", prec, policy_cov)
+    logdet_cov = _logdet_pd(policy_cov, "the policy covariance")
+    return 0.5 * (trace - dU - _logdet_pd(prec, name) - logdet_cov)
+
+
+def _row_constants(policy_cov: Tensor, batch: DistillBatch) -> Tensor:
+    """Per-row constant part of the loss, ``[M]``; rows without p_pre get an identity
+    precision in the masked-out term so the Cholesky factor exists."""
+    eye = torch.eye(policy_cov.shape[-1], dtype=policy_cov.dtype, device=policy_cov.device)
+    has_pre = batch.has_pre[:, None, None]
+    prec_pre = torch.where(has_pre, batch.prec_pre, eye)
+    pre = torch.where(batch.has_pre, _constant_terms(policy_cov, prec_pre, "prec_pre"), 0.0)
+    return _constant_terms(policy_cov, batch.prec_cur, "prec_cur") + pre
+
+
+def _row_quadratics(policy_mean: Tensor, batch: DistillBatch) -> Tensor:
+    """Per-row precision-weighted regression part of the loss,
+    ``1/2 [(mu - mu_cur)^T P_cur (mu - mu_cur) + has_pre (mu - mu_pre)^T P_pre (mu - mu_pre)]``."""
+    cur = _quadratic(policy_mean - batch.mean_cur, batch.prec_cur)
+    # Masking the inputs (not the result) keeps values and gradients finite whatever the
+    # ignored rows hold.
+    diff_pre = torch.where(batch.has_pre[:, None], policy_mean - batch.mean_pre, 0.0)
+    prec_pre = torch.where(batch.has_pre[:, None, None], batch.prec_pre, 0.0)
+    pre = _quadratic(diff_pre, prec_pre)
+    return 0.5 * (cur + pre)
+
+
+def kl_loss(policy_mean: Tensor, policy_cov: Tensor, batch: DistillBatch) -> Tensor:
+    """The S-step objective (paper eq. 8), averaged over rows:
+
+        ``L = 1/M sum_m [KL(pi || p_cur) + has_pre_m KL(pi || p_pre)]``, with
+        ``KL(pi || p) = 1/2 [tr(P Sigma_pi) + (mu - mu_p)^T P (mu - mu_p) - dU
+                             + log det Sigma_p - log det Sigma_pi]``
+
+    and ``log det Sigma_p = -log det P``. Plain torch, differentiable in every input, the
+    controllers' means and precisions included.
+
+    :param policy_mean: ``mu_theta(x)`` at the batch's states, ``[M, dU]``.
+    :param policy_cov: ``Sigma_pi``, ``[dU, dU]`` (diagonal for :class:`GaussianPolicy`).
+    :param batch: states and controller Gaussians.
+    :return: scalar loss.
+    """
+    _check(batch)
+    rows = _row_constants(policy_cov, batch) + _row_quadratics(policy_mean, batch)
+    return rows.mean()
+
+
+def optimal_variance(batch: DistillBatch) -> Tensor:
+    """Diagonal ``Sigma_pi = diag(sigma^2)`` minimising :func:`kl_loss`, ``[dU]``.
+
+    The loss depends on ``sigma_i^2`` through ``1/2 sum_terms (P_ii sigma_i^2 - log sigma_i^2)``;
+    setting the derivative to zero gives
+        ``sigma_i^2 = n_terms / sum_terms P_ii`` = 1 / (mean of ``P_ii`` over the terms that count),
+    where the terms are every row's ``P_cur`` and the ``P_pre`` of rows with ``has_pre``.
+    """
+    _check(batch)
+    diag_cur = batch.prec_cur.diagonal(dim1=-2, dim2=-1)  # [M, dU]
+    diag_pre = torch.where(batch.has_pre[:, None], batch.prec_pre.diagonal(dim1=-2, dim2=-1), 0.0)
+    n_terms = batch.M + batch.has_pre.sum()
+    return n_terms / (diag_cur.sum(0) + diag_pre.sum(0))
+
+
+@contextmanager
+def _intra_op_threads(n: int | None) -> Iterator[None]:
+    """Run the body with ``n`` torch intra-op threads (None: unchanged), then restore."""
+    previous = torch.get_num_threads()
+    if n is not None:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def distill(
+    policy: GaussianPolicy,
+    batch: DistillBatch,
+    config: PolicyConfig | None = None,
+    generator: torch.Generator | None = None,
+) -> list[float]:
+    """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8).
+
+    Steps: whitening from ``batch.x``; ``Sigma_pi`` in closed form (:func:`optimal_variance`);
+    then ``config.steps`` Adam steps (fresh optimiser state) on minibatches of
+    ``config.batch_size`` rows drawn uniformly with replacement, from the current weights (the
+    policy keeps what earlier S-steps taught it), on ``config.num_threads`` intra-op threads.
+    Only the precision-weighted regression term depends on theta; the loss recorded per step is
+    the full KL loss of that minibatch. Marks the policy trained. Deterministic for a given
+    ``generator`` state.
+
+    :param policy: the global policy, trained in place.
+    :param batch: successful states with their targets (detached here).
+    :param config: training settings (default ``policy.config``).
+    :param generator: source of the minibatch draws (default: seeded by ``config.seed``).
+    :return: minibatch loss per Adam step, ``config.steps`` floats.
+    """
+    config = config if config is not None else policy.config
+    generator = generator if generator is not None else torch.Generator().manual_seed(config.seed)
+    _check(batch)
+    batch = DistillBatch(*(field.detach() for field in batch))
+    policy.set_whitening(batch.x)
+    policy.set_variance(optimal_variance(batch))
+    with torch.no_grad():
+        constants = _row_constants(policy.covariance(), batch)  # [M]
+    optimiser = torch.optim.Adam(policy.net.parameters(), lr=config.learning_rate)
+    draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
+    history: list[float] = []
+    with _intra_op_threads(config.num_threads):
+        for rows in draws.to(batch.x.device):
+            minibatch = DistillBatch(*(field[rows] for field in batch))
+            loss = (_row_quadratics(policy(minibatch.x), minibatch) + constants[rows]).mean()
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+            history.append(loss.item())
+    policy.trained = True
+    return history

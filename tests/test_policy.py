@@ -1,0 +1,284 @@
+"""The global policy, its linearisation and the S-step, against independent answers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from torch.distributions import MultivariateNormal, kl_divergence
+
+from lolgps_torch.dynamics import GMMPrior
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.policy import (
+    DistillBatch,
+    GaussianPolicy,
+    PolicyConfig,
+    distill,
+    kl_loss,
+    linearize_policy,
+    optimal_variance,
+)
+
+F64 = torch.float64
+
+
+def random_spd(n: int, *batch: int, generator: torch.Generator) -> torch.Tensor:
+    """Random symmetric positive definite matrices ``[*batch, n, n]`` with eigenvalues ~0.5-3."""
+    A = torch.randn(*batch, n, n, dtype=F64, generator=generator)
+    return A @ A.mT / n + 0.5 * torch.eye(n, dtype=F64)
+
+
+def random_batch(M: int, dX: int, dU: int, seed: int) -> DistillBatch:
+    g = torch.Generator().manual_seed(seed)
+    has_pre = torch.arange(M) % 3 != 0
+    mask = has_pre[:, None]
+    return DistillBatch(
+        x=torch.randn(M, dX, dtype=F64, generator=g),
+        mean_cur=torch.randn(M, dU, dtype=F64, generator=g),
+        prec_cur=random_spd(dU, M, generator=g),
+        mean_pre=torch.randn(M, dU, dtype=F64, generator=g) * mask,
+        prec_pre=random_spd(dU, M, generator=g) * mask[:, :, None],
+        has_pre=has_pre,
+    )
+
+
+def reference_loss(mean: torch.Tensor, cov: torch.Tensor, batch: DistillBatch) -> torch.Tensor:
+    """Mean over rows of KL(pi || p_cur) + has_pre KL(pi || p_pre), by torch.distributions."""
+    pi = MultivariateNormal(mean, covariance_matrix=cov.expand(batch.M, -1, -1))
+    cur = kl_divergence(pi, MultivariateNormal(batch.mean_cur, precision_matrix=batch.prec_cur))
+    rows = batch.has_pre
+    pi_pre = MultivariateNormal(mean[rows], covariance_matrix=cov.expand(int(rows.sum()), -1, -1))
+    p_pre = MultivariateNormal(batch.mean_pre[rows], precision_matrix=batch.prec_pre[rows])
+    return (cur.sum() + kl_divergence(pi_pre, p_pre).sum()) / batch.M
+
+
+def test_kl_loss_matches_torch_distributions() -> None:
+    g = torch.Generator().manual_seed(1)
+    batch = random_batch(M=60, dX=4, dU=3, seed=0)
+    mean = torch.randn(60, 3, dtype=F64, generator=g)
+    cov = torch.diag(torch.rand(3, dtype=F64, generator=g) + 0.1)
+    leaves = (batch.mean_cur, batch.prec_cur, batch.mean_pre)
+    for leaf in (mean, *leaves):
+        leaf.requires_grad_(True)
+    got = kl_loss(mean, cov, batch)
+    expected = reference_loss(mean, cov, batch)
+    assert torch.allclose(got, expected, rtol=1e-12, atol=1e-12)
+    # Differentiable in the policy mean and in the controllers' targets, like the reference.
+    grads = torch.autograd.grad(got, (mean, *leaves))
+    expected_grads = torch.autograd.grad(expected, (mean, *leaves))
+    for grad, expected_grad in zip(grads, expected_grads, strict=True):
+        assert torch.allclose(grad, expected_grad, rtol=1e-9, atol=1e-12)
+    assert grads[3][~batch.has_pre].abs().max() == 0  # rows without p_pre ignore mean_pre
+
+
+def test_kl_loss_full_policy_covariance() -> None:
+    g = torch.Generator().manual_seed(2)
+    batch = random_batch(M=20, dX=2, dU=4, seed=3)
+    mean = torch.randn(20, 4, dtype=F64, generator=g)
+    cov = random_spd(4, generator=g)
+    assert torch.allclose(kl_loss(mean, cov, batch), reference_loss(mean, cov, batch), rtol=1e-12)
+
+
+def test_optimal_variance_minimises_the_loss() -> None:
+    batch = random_batch(M=200, dX=3, dU=3, seed=4)
+    mean = torch.randn(200, 3, dtype=F64, generator=torch.Generator().manual_seed(5))
+    variance = optimal_variance(batch)
+    best = kl_loss(mean, torch.diag(variance), batch)
+    for i in range(3):
+        for factor in (0.97, 1.03):
+            perturbed = variance.clone()
+            perturbed[i] *= factor
+            assert kl_loss(mean, torch.diag(perturbed), batch) > best + 1e-6
+    # Stationary: the gradient of the loss in the variance vanishes there.
+    v = variance.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(kl_loss(mean, torch.diag(v), batch), v)
+    assert grad.abs().max() < 1e-12
+
+
+def nonlinear_batch(M: int, seed: int) -> tuple[DistillBatch, torch.Tensor]:
+    """A batch whose two targets are nonlinear in x (p_pre everywhere; fixed precisions, as at
+    one time step), and the minimiser of the regression part, the precision-weighted average
+    ``(P_cur + P_pre)^{-1} (P_cur mu_cur + P_pre mu_pre)`` ([M, dU])."""
+    g = torch.Generator().manual_seed(seed)
+    scale, shift = (
+        torch.tensor([1.0, 5.0, 0.2], dtype=F64),
+        torch.tensor([0.0, 3.0, -1.0], dtype=F64),
+    )
+    z = 2 * torch.rand(M, 3, dtype=F64, generator=g) - 1
+    mean_cur = torch.stack([torch.sin(2 * z[:, 0]) + z[:, 1] * z[:, 2], torch.tanh(3 * z[:, 2])], 1)
+    mean_pre = torch.stack([z[:, 0] ** 2, z[:, 1] - z[:, 0]], 1)
+    prec_cur = random_spd(2, generator=g).expand(M, 2, 2)
+    prec_pre = random_spd(2, generator=g).expand(M, 2, 2)
+    rhs = (prec_cur @ mean_cur[:, :, None] + prec_pre @ mean_pre[:, :, None]).squeeze(-1)
+    target = torch.linalg.solve(prec_cur + prec_pre, rhs)
+    has_pre = torch.ones(M, dtype=torch.bool)
+    return DistillBatch(z * scale + shift, mean_cur, prec_cur, mean_pre, prec_pre, has_pre), target
+
+
+def test_distill_fits_a_nonlinear_target() -> None:
+    batch, target = nonlinear_batch(M=3000, seed=6)
+    config = PolicyConfig(steps=1500, batch_size=64, seed=0)
+    policy = GaussianPolicy(3, 2, config)
+    assert not policy.trained
+    with torch.no_grad():
+        initial = kl_loss(policy(batch.x), policy.covariance(), batch)
+    history = distill(policy, batch)
+    assert policy.trained and len(history) == config.steps
+    variance = optimal_variance(batch)
+    assert torch.equal(policy.variance, variance)
+    with torch.no_grad():
+        final = kl_loss(policy(batch.x), policy.covariance(), batch)
+        floor = kl_loss(target, policy.covariance(), batch)  # the best any mean can do
+        error = (policy(batch.x) - target).norm(dim=1).pow(2).mean().sqrt()
+    assert final - floor < 0.01 * (initial - floor)
+    assert error < 0.05 * target.std(0).norm()
+    first, last = sum(history[:100]) / 100, sum(history[-100:]) / 100
+    assert last - floor < 0.05 * (first - floor)
+
+
+def test_distill_is_deterministic_for_a_seed() -> None:
+    batch, _ = nonlinear_batch(M=500, seed=7)
+    config = PolicyConfig(steps=60, seed=3)
+    runs = []
+    for _ in range(2):
+        policy = GaussianPolicy(3, 2, config)
+        history = distill(policy, batch, generator=torch.Generator().manual_seed(11))
+        runs.append((history, policy(batch.x).detach()))
+    assert runs[0][0] == runs[1][0]
+    assert torch.equal(runs[0][1], runs[1][1])
+    other = GaussianPolicy(3, 2, config)
+    assert distill(other, batch, generator=torch.Generator().manual_seed(12)) != runs[0][0]
+
+
+def test_distill_ignores_pre_targets_without_p_pre() -> None:
+    batch, _ = nonlinear_batch(M=200, seed=8)
+    absent = torch.arange(200) % 2 == 0
+    batch = batch._replace(
+        mean_pre=torch.where(absent[:, None], 0.0, batch.mean_pre),
+        prec_pre=torch.where(absent[:, None, None], 0.0, batch.prec_pre),
+        has_pre=~absent,
+    )
+    garbage = batch._replace(
+        mean_pre=torch.where(absent[:, None], 1e6, batch.mean_pre),
+        prec_pre=torch.where(absent[:, None, None], torch.nan, batch.prec_pre),
+    )
+    config = PolicyConfig(steps=20)
+    clean, dirty = GaussianPolicy(3, 2, config), GaussianPolicy(3, 2, config)
+    assert distill(clean, batch) == distill(dirty, garbage)
+
+
+def test_distill_rejects_an_empty_batch() -> None:
+    batch, _ = nonlinear_batch(M=10, seed=9)
+    with pytest.raises(LolgpsError, match="empty"):
+        distill(GaussianPolicy(3, 2), DistillBatch(*(field[:0] for field in batch)))
+
+
+def test_whitening_floors_the_std() -> None:
+    policy = GaussianPolicy(3, 1, PolicyConfig(std_floor=1e-3))
+    x = torch.randn(100, 3, dtype=F64, generator=torch.Generator().manual_seed(0))
+    x[:, 1] = 4.0
+    policy.set_whitening(x)
+    assert policy.x_std[1] == 1e-3 and policy.x_mean[1] == 4.0
+    assert torch.allclose(policy.x_std[[0, 2]], x[:, [0, 2]].std(0, correction=0))
+    assert torch.isfinite(policy(x)).all()
+
+
+def linear_policy(dX: int, dU: int, seed: int) -> tuple[GaussianPolicy, torch.Tensor, torch.Tensor]:
+    """A GaussianPolicy whose net is a linear map, and its affine law ``u = K x + k`` in raw x."""
+    g = torch.Generator().manual_seed(seed)
+    linear = torch.nn.Linear(dX, dU, dtype=F64)
+    with torch.no_grad():
+        linear.weight.copy_(torch.randn(dU, dX, dtype=F64, generator=g))
+        linear.bias.copy_(torch.randn(dU, dtype=F64, generator=g))
+    policy = GaussianPolicy(dX, dU)
+    policy.net = linear
+    policy.set_whitening(torch.randn(50, dX, dtype=F64, generator=g) * 2 + 1)
+    policy.set_variance(torch.rand(dU, dtype=F64, generator=g) + 0.05)
+    policy.trained = True
+    K = linear.weight.detach() / policy.x_std
+    return policy, K, linear.bias.detach() - K @ policy.x_mean
+
+
+def test_linearize_recovers_a_linear_policy() -> None:
+    dX, dU, N, T = 5, 3, 20, 6
+    policy, K, k = linear_policy(dX, dU, seed=0)
+    g = torch.Generator().manual_seed(1)
+    drift = torch.linspace(0, 2, T, dtype=F64)[:, None]
+    # States spread well beyond the 1e-6 regulariser of Sigma_xx, drifting over time.
+    x = 3 * torch.randn(N, T, dX, dtype=F64, generator=g) + drift
+    prior = GMMPrior()
+    p_pre = linearize_policy(policy, x, prior)
+    assert p_pre.K.shape == (T, dU, dX) and p_pre.cov.shape == (T, dU, dU)
+    assert torch.allclose(p_pre.K, K.expand(T, -1, -1), atol=1e-6, rtol=0)
+    assert torch.allclose(p_pre.k, k.expand(T, -1), atol=1e-6, rtol=0)
+    # S_t = 0 up to the regularisers (1e-6) of the GMM and the regression.
+    assert torch.allclose(p_pre.cov, policy.covariance().expand(T, -1, -1), atol=1e-5, rtol=0)
+    assert prior.data is not None and prior.data.shape == (N, T, dX + dU)
+
+
+def test_linearize_follows_a_nonlinear_policy_over_time() -> None:
+    linear = torch.nn.Linear(2, 1, dtype=F64)
+    with torch.no_grad():
+        linear.weight.copy_(torch.tensor([[1.0, -0.5]], dtype=F64))
+        linear.bias.zero_()
+    policy = GaussianPolicy(2, 1)
+    policy.net = torch.nn.Sequential(linear, torch.nn.Tanh())
+    policy.set_variance(torch.tensor([0.3], dtype=F64))
+    centres = torch.tensor([[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [1.5, -1.0]], dtype=F64)
+    N, T = 40, 4
+    x = 0.05 * torch.randn(N, T, 2, dtype=F64, generator=torch.Generator().manual_seed(2)) + centres
+    # A negligible prior and regulariser: the fit is then the per-step least-squares line.
+    p_pre = linearize_policy(policy, x, GMMPrior(strength=1e-9), regression_reg=1e-12)
+    u = policy(x).detach()  # [N, T, 1]
+    design = torch.cat([x, torch.ones(N, T, 1, dtype=F64)], -1).transpose(0, 1)  # [T, N, 3]
+    coef = torch.linalg.lstsq(design, u.transpose(0, 1)).solution  # [T, 3, 1]
+    residual = u.transpose(0, 1) - design @ coef  # [T, N, 1]
+    assert torch.allclose(p_pre.K, coef[:, :2].mT, atol=1e-6)
+    assert torch.allclose(p_pre.k, coef[:, 2], atol=1e-6)
+    assert torch.allclose(p_pre.cov, residual.mT @ residual / N + 0.3, atol=1e-6)
+    # ... so each step's gain is the policy's Jacobian there, (1 - tanh^2(w.x)) w.
+    w = torch.tensor([1.0, -0.5], dtype=F64)
+    jacobian = (1 - torch.tanh(centres @ w) ** 2)[:, None, None] * w  # [T, 1, 2]
+    assert torch.allclose(p_pre.K, jacobian, atol=0.01)
+
+
+def test_save_load_round_trip(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    config = PolicyConfig(hidden_sizes=(8, 6), steps=30, seed=4)
+    policy = GaussianPolicy(3, 2, config)
+    batch, _ = nonlinear_batch(M=100, seed=10)
+    distill(policy, batch)
+    policy.save(tmp_path / "ckpt")
+    assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == ["policy.json", "policy.pt"]
+    calls: list[dict[str, object]] = []
+    real_load = torch.load
+
+    def recording_load(*args: object, **kwargs: object) -> object:
+        calls.append(kwargs)
+        return real_load(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(torch, "load", recording_load)
+    loaded = GaussianPolicy.load(tmp_path / "ckpt")
+    assert [call.get("weights_only") for call in calls] == [True]
+    assert loaded.config == config and loaded.trained
+    x = torch.randn(7, 5, 3, dtype=F64)
+    assert torch.equal(loaded(x), policy(x))
+    assert torch.equal(loaded.covariance(), policy.covariance())
+
+
+def test_load_of_a_corrupt_checkpoint_raises(tmp_path: Path) -> None:
+    GaussianPolicy(2, 1).save(tmp_path)
+    (tmp_path / "policy.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(LolgpsError, match="cannot load policy"):
+        GaussianPolicy.load(tmp_path)
+    with pytest.raises(LolgpsError, match="cannot load policy"):
+        GaussianPolicy.load(tmp_path / "missing")
+
+
+def test_kl_loss_rejects_an_indefinite_precision() -> None:
+    batch = random_batch(M=4, dX=2, dU=2, seed=0)
+    bad = batch._replace(
+        prec_cur=batch.prec_cur * torch.tensor([1.0, -1.0, 1.0, 1.0])[:, None, None]
+    )
+    with pytest.raises(LolgpsError, match=r"prec_cur is not positive definite \(rows \[1\]"):
+        kl_loss(batch.mean_cur, torch.eye(2, dtype=F64), bad)
