@@ -20,6 +20,9 @@ class CStepConfig:
     :param step_change_max: upper clip of one adaptation's factor on the multiplier.
     :param eta_min: smallest dual variable searched (the constraint is not binding below it).
     :param eta_max: largest dual variable; a Quu not positive definite past it is an error.
+        1e10, not the original's 1e16: with the scaled surrogate C + eta (-log p_bar), V's
+        eta-sized terms nearly cancel, and past ~1e12 rounding amplified by unstable fitted
+        dynamics makes Quu indefinite (seen on peg-insertion fits); by 1e10 p = p_bar anyway.
     :param kl_tolerance: accepted relative error ``|KL - epsilon| <= kl_tolerance * epsilon``.
     :param num_candidates: eta candidates evaluated together in one batched pass.
     :param max_passes: most batched passes of the dual search.
@@ -34,7 +37,7 @@ class CStepConfig:
     step_change_min: float = 0.1
     step_change_max: float = 5.0
     eta_min: float = 1e-8
-    eta_max: float = 1e16
+    eta_max: float = 1e10
     kl_tolerance: float = 0.1
     num_candidates: int = 8
     max_passes: int = 10

@@ -111,11 +111,13 @@ def _choose(eta: Tensor, kl: Tensor, epsilon: float, config: CStepConfig, window
     if error[best] <= tol * epsilon:
         return _Choice(True, best, eta[:0])
     below = torch.nonzero(kl_sorted < epsilon).squeeze(-1)
-    if below.numel() == 0:
-        raise LolgpsError(
+    if below.numel() == 0:  # the fitted dynamics amplify even p ~ p_bar: stay at p_bar
+        warnings.warn(
             f"KL to p_bar is {float(kl_sorted[-1]):.3g} > epsilon = {epsilon:.3g} even at the "
-            f"largest eta {float(eta.max()):.3g}: raise eta_max or epsilon"
+            f"largest eta {float(eta.max()):.3g}; keeping that controller (closest to p_bar)",
+            stacklevel=3,
         )
+        return _Choice(True, int(order[-1]), eta[:0])
     hi = int(below[0])
     x = eta[order].log().tolist()
     y = kl_sorted.clamp_min(torch.finfo(kl.dtype).tiny).log().tolist()

@@ -1,0 +1,292 @@
+"""LOLGPS over a stream of conditions (paper Algorithm 2, ALGORITHM.md section 8).
+
+    pi <- fresh net; p_pre <- none
+    for each condition m as it arrives:
+        p_cur <- initial controller; D_g(m) <- {}
+        repeat:
+            p_act <- p_cur if no p_pre else alpha p_pre + (1 - alpha) p_cur       (eq. 6)
+            D_i <- N rollouts of p_act; fit dynamics
+            p_pre <- linearise pi around D_i, if pi was trained                  (line 14)
+            p_cur <- argmin E[cost] s.t. KL(p_cur || p_bar) <= eps                (eq. 7)
+                     (p_bar = p_pre with cstep_anchor "pre", else the previous p_cur)
+            D_g(m) += successful rollouts of D_i, with the p_cur and p_pre targets
+        until successful samples from ``success_phases`` iterations are in D_g(m), or a limit
+        pi <- argmin KL(pi || p_cur) + KL(pi || p_pre) over D_g(m) + replay of D_g(<m)  (eq. 8)
+
+The baselines share this loop: naive sequential drops p_pre and the replay.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.controllers import mix, smoothed_noise
+from lolgps_torch.data import ConditionSamples, ReplayBuffer
+from lolgps_torch.dynamics import DynamicsConfig, GMMPrior
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.policy import DistillBatch, GaussianPolicy, PolicyConfig, distill, linearize_policy
+from lolgps_torch.sim.rollout import Actor, linear_gaussian_actor
+from lolgps_torch.task import PegTask
+from lolgps_torch.types import LinearGaussian, Trajectories
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """Settings of the outer loop.
+
+    :param alpha: weight of p_pre in p_act (the initial value when dynamic).
+    :param alpha_schedule: ``constant``, or ``dynamic`` (alpha += alpha_step per iteration).
+    :param alpha_step: the dynamic schedule's increment (paper: 0.005).
+    :param use_pre: linearise the global policy into p_pre (off: naive sequential).
+    :param cstep_anchor: the C-step's p_bar once p_pre exists: ``pre`` (paper eq. 7,
+        KL(p_cur || p_pre) <= eps) or ``previous`` (the previous p_cur, a trust region).
+    :param replay: distil on the replay of earlier conditions too (off: an ablation).
+    :param success_phases: iterations with successful samples needed in D_g (paper: 9).
+    :param max_iterations: iteration limit per condition.
+    :param seed: seeds every condition's sampling and every S-step.
+    """
+
+    alpha: float = 0.0
+    alpha_schedule: str = "dynamic"
+    alpha_step: float = 0.005
+    use_pre: bool = True
+    cstep_anchor: str = "previous"
+    replay: bool = True
+    success_phases: int = 9
+    max_iterations: int = 25
+    seed: int = 0
+    local: LocalConfig = field(default_factory=LocalConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+
+
+def policy_actor(policy: GaussianPolicy, noise: Tensor | None = None) -> Actor:
+    """The global policy: its mean action, plus ``chol(Sigma_pi) eps_t`` when given noise
+    ``eps: [N, T, dU]``."""
+    L = torch.linalg.cholesky(policy.covariance()).detach()
+
+    def act(t: int, x: Tensor, rows: slice) -> Tensor:
+        with torch.no_grad():
+            u = policy(x)
+        return u if noise is None else u + noise[rows, t] @ L.T
+
+    return act
+
+
+def controller_targets(p: LinearGaussian, x: Tensor) -> tuple[Tensor, Tensor]:
+    """Means ``[M, T, dU]`` and precisions ``[M, T, dU, dU]`` of ``p`` at states ``[M, T, dX]``."""
+    mean = p.mean_action(x)
+    prec = p.precision().expand(x.shape[0], *p.cov.shape)
+    return mean, prec
+
+
+class StreamLearner:
+    """Runs the stream, condition by condition, into an output folder it can resume from."""
+
+    def __init__(
+        self,
+        task: PegTask,
+        config: StreamConfig,
+        out: str,
+        log: Callable[[dict[str, Any]], None],
+    ) -> None:
+        self.task, self.config, self.out, self.log = task, config, out, log
+        lay = task.layout
+        self.policy = GaussianPolicy(lay.dX, lay.dU, config.policy, task.device)
+        self.replay = ReplayBuffer(os.path.join(out, "replay.h5"))
+        self.summary: list[dict[str, Any]] = []
+
+    # -- one condition -------------------------------------------------------------------
+    def learn_condition(self, index: int, offset: tuple[float, float]) -> dict[str, Any]:
+        """Algorithm 2's inner loop at one condition; returns its summary entry."""
+        cfg, task = self.config, self.task
+        learner = LocalLearner(task, offset, cfg.local, seed=cfg.seed * 1000 + index)
+        pre_prior = _policy_prior(cfg.local.dynamics) if cfg.use_pre and self.policy_trained else None
+        p_pre: LinearGaussian | None = None
+        alpha = cfg.alpha
+        kept: list[dict[str, Tensor]] = []
+        first_success: int | None = None
+        iterations = 0
+        for i in range(cfg.max_iterations):
+            iterations = i + 1
+            p_act = learner.p_cur if p_pre is None or i == 0 else mix(p_pre, learner.p_cur, alpha)
+            t0 = time.perf_counter()
+            samples = learner.sample(p_act)
+            t1 = time.perf_counter()
+            fit = learner.fit(p_act, samples)
+            if pre_prior is not None:
+                p_pre = linearize_policy(self.policy, samples.x, pre_prior)
+            t2 = time.perf_counter()
+            anchor = p_pre if p_pre is not None and cfg.cstep_anchor == "pre" else learner.p_cur
+            epsilon, eta, kl = learner.improve(fit, anchor)
+            t3 = time.perf_counter()
+            if samples.success.any():
+                first_success = i if first_success is None else first_success
+                kept.append(self._with_targets(samples, learner.p_cur, p_pre))
+            self.log(
+                {
+                    "condition": index,
+                    "iteration": i,
+                    "alpha": float(alpha) if p_pre is not None and i > 0 else 0.0,
+                    "mean_cost": float(samples.cost.sum(1).mean()),
+                    "mean_distance": float(samples.final_distance.mean()),
+                    "best_distance": float(samples.final_distance.min()),
+                    "success_rate": float(samples.success.double().mean()),
+                    "epsilon": epsilon,
+                    "eta": eta,
+                    "kl": kl,
+                    "time_sample": t1 - t0,
+                    "time_fit": t2 - t1,
+                    "time_cstep": t3 - t2,
+                }
+            )
+            if cfg.alpha_schedule == "dynamic":
+                alpha = min(1.0, alpha + cfg.alpha_step)
+            if len(kept) >= cfg.success_phases:
+                break
+
+        t0 = time.perf_counter()
+        data = self._condition_samples(kept)
+        losses = self._distill(data)
+        t_distill = time.perf_counter() - t0
+        local = self._rollout_noiseless(learner.p_cur, offset)
+        policy = self._policy_distances([offset])[0]
+        threshold = task.config.world.success_threshold
+        entry = {
+            "condition": index,
+            "offset": list(offset),
+            "iterations": iterations,
+            "first_success_iteration": first_success,
+            "successful_samples": int(data.x.shape[0]),
+            "local_final_distance": local,
+            "local_success": local < threshold,
+            "policy_final_distance_after": policy,
+            "policy_success_after": policy < threshold,
+            "distill_loss": losses[-1] if losses else None,
+            "time_distill": t_distill,
+        }
+        # Checkpoint first, replay last: a condition is complete once its replay group exists.
+        folder = self._checkpoint_dir(index)
+        self.policy.save(folder)
+        _write_json(os.path.join(folder, "entry.json"), entry)
+        self.replay.append_condition(index, offset, data, iterations)
+        return entry
+
+    @property
+    def policy_trained(self) -> bool:
+        return bool(self.policy.trained)
+
+    def _with_targets(
+        self, samples: Trajectories, p_cur: LinearGaussian, p_pre: LinearGaussian | None
+    ) -> ConditionSamples:
+        """The successful rollouts with p_cur's and p_pre's means and precisions at their states."""
+        ok = samples.success
+        x = samples.x[ok]
+        with torch.no_grad():
+            mean_cur, prec_cur = controller_targets(p_cur, x)
+            if p_pre is not None:
+                mean_pre, prec_pre = controller_targets(p_pre, x)
+            else:
+                mean_pre, prec_pre = torch.zeros_like(mean_cur), torch.zeros_like(prec_cur)
+        has_pre = torch.full((x.shape[0],), p_pre is not None, dtype=torch.bool, device=x.device)
+        return ConditionSamples(
+            x, samples.u[ok], samples.cost[ok], samples.final_distance[ok],
+            mean_cur, prec_cur, mean_pre, prec_pre, has_pre,
+        )
+
+    def _condition_samples(self, kept: list[ConditionSamples]) -> ConditionSamples:
+        """D_g of the condition (possibly empty: M = 0)."""
+        if kept:
+            return ConditionSamples(*(torch.cat(f) for f in zip(*kept, strict=True)))
+        lay, T = self.task.layout, self.task.T
+        opts = {"dtype": torch.float64, "device": self.task.device}
+        return ConditionSamples(
+            torch.zeros(0, T, lay.dX, **opts), torch.zeros(0, T, lay.dU, **opts),
+            torch.zeros(0, T, **opts), torch.zeros(0, **opts),
+            torch.zeros(0, T, lay.dU, **opts), torch.zeros(0, T, lay.dU, lay.dU, **opts),
+            torch.zeros(0, T, lay.dU, **opts), torch.zeros(0, T, lay.dU, lay.dU, **opts),
+            torch.zeros(0, dtype=torch.bool, device=self.task.device),
+        )
+
+    def _distill(self, data: ConditionSamples) -> list[float]:
+        """S-step on this condition's D_g, plus the earlier ones' from the replay when on."""
+        batches = [data.to_batch()]
+        earlier = self.replay.conditions() if self.config.replay else []
+        if earlier:
+            batches.append(self.replay.load(earlier, device=self.task.device))
+        batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
+        if batch.x.shape[0] == 0:
+            return []
+        gen = torch.Generator().manual_seed(self.config.seed * 1000 + len(self.summary))
+        return distill(self.policy, batch, self.config.policy, gen)
+
+    def _rollout_noiseless(self, p: LinearGaussian, offset: tuple[float, float]) -> float:
+        zero = torch.zeros(1, self.task.T, self.task.layout.dU, dtype=torch.float64, device=self.task.device)
+        return float(self.task.sample(linear_gaussian_actor(p, zero), [offset]).final_distance[0])
+
+    def _policy_distances(self, offsets: list[tuple[float, float]]) -> list[float]:
+        if not self.policy_trained:
+            return [float("nan")] * len(offsets)
+        return self.task.sample(policy_actor(self.policy), offsets).final_distance.tolist()
+
+    # -- the stream ----------------------------------------------------------------------
+    def run(self, conditions: list[tuple[float, float]], on_condition: Callable[[dict[str, Any]], None]) -> list[dict[str, Any]]:
+        """Learn every condition not yet completed in ``out``, checkpointing after each."""
+        done = self._restore()
+        for index, offset in enumerate(conditions):
+            if index < done:
+                continue
+            entry = self.learn_condition(index, offset)
+            self.summary.append(entry)
+            on_condition(entry)
+        final = self._policy_distances(list(conditions))
+        for entry, dist in zip(self.summary, final, strict=True):
+            entry["policy_final_distance_end"] = dist
+            entry["policy_success_end"] = dist < self.task.config.world.success_threshold
+        return self.summary
+
+    def _checkpoint_dir(self, index: int) -> str:
+        return os.path.join(self.out, "checkpoints", f"after_condition_{index:03d}")
+
+    def _restore(self) -> int:
+        """Resume after the last condition whose replay group was written (the replay is
+        written last, so its policy checkpoint and summary entry exist)."""
+        done = len(self.replay.conditions())
+        if done == 0:
+            return 0
+        self.summary = []
+        for index in range(done):
+            with open(os.path.join(self._checkpoint_dir(index), "entry.json")) as fh:
+                self.summary.append(json.load(fh))
+        self.policy = GaussianPolicy.load(self._checkpoint_dir(done - 1), self.task.device)
+        return done
+
+
+def _write_json(path: str, data: Any) -> None:
+    """Write JSON atomically (temp file, fsync, rename)."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    tmp = path + ".tmp"
+    with open(tmp, "w") as fh:
+        json.dump(data, fh, indent=1)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _policy_prior(d: DynamicsConfig) -> GMMPrior:
+    """The GMM prior over ``[x, pi(x)]`` for linearising the policy, set up as the dynamics'."""
+    return GMMPrior(
+        max_trajectories=d.max_trajectories,
+        max_clusters=d.max_clusters,
+        min_clusters=d.min_clusters,
+        min_points_per_cluster=d.min_points_per_cluster,
+        strength=d.prior_strength,
+        seed=d.seed,
+    )

@@ -1,0 +1,78 @@
+"""Benchmark of the evaluation's parallelism: the same noiseless rollouts of one policy at N test
+positions with one worker (in this process) and with several spawned workers.
+
+    python scripts/bench_eval.py [--urdf robots/kuka_peg.urdf] [--positions 60] [--workers 2]
+                                 [--checkpoint DIR]
+
+Times are end to end, as ``evaluate_run`` spends them: building the task (and, for the pool,
+starting the processes) plus the rollouts. The speed-up is ``t_1 / t_workers``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from dataclasses import asdict
+
+from lolgps_torch.cli import run
+from lolgps_torch.evaluation.areas import AreaConfig, sample_area_positions
+from lolgps_torch.evaluation.evaluate import Job, run_jobs
+from lolgps_torch.policy.net import GaussianPolicy
+from lolgps_torch.sim.arm import load_arm
+from lolgps_torch.state import StateLayout
+from lolgps_torch.task import TaskConfig
+
+
+def bench_eval(
+    task: TaskConfig,
+    n_positions: int = 60,
+    workers: int = 2,
+    checkpoint: str | None = None,
+    batch_size: int = 10,
+) -> dict[str, float]:
+    """Seconds to evaluate the first ``n_positions`` default test positions with 1 and with
+    ``workers`` workers, and their ratio ``speedup = t_1 / t_workers``.
+
+    :param checkpoint: policy folder; default an untrained policy with seed 0.
+    """
+    positions = [(p[0], p[1]) for p in sample_area_positions(AreaConfig()).reshape(-1, 2).tolist()]
+    positions = positions[:n_positions]
+    with tempfile.TemporaryDirectory() as scratch:
+        if checkpoint is None:
+            layout = StateLayout(load_arm(task.urdf, task.ee_link, task.peg).dof)
+            GaussianPolicy(layout.dX, layout.dU).save(scratch)
+            checkpoint = scratch
+        jobs = [
+            Job(checkpoint, tuple(positions[i : i + batch_size]))
+            for i in range(0, len(positions), batch_size)
+        ]
+        times = {}
+        for n in (1, workers):
+            t0 = time.perf_counter()
+            run_jobs(asdict(task), jobs, n, batch_size)
+            times[n] = time.perf_counter() - t0
+    return {
+        "positions": float(len(positions)),
+        "one_worker_s": times[1],
+        f"{workers}_workers_s": times[workers],
+        "speedup": times[1] / times[workers],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--urdf", default="robots/kuka_peg.urdf", help="the arm's URDF")
+    parser.add_argument("--positions", type=int, default=60, help="test positions (default 60)")
+    parser.add_argument("--workers", type=int, default=2, help="pool size (default 2)")
+    parser.add_argument("--checkpoint", default=None, help="policy folder (default: untrained)")
+    args = parser.parse_args()
+    result = bench_eval(TaskConfig(urdf=args.urdf), args.positions, args.workers, args.checkpoint)
+    for name, value in result.items():
+        print(f"{name:>16}: {value:.3f}")
+
+
+if __name__ == "__main__":
+    run(main)

@@ -1,0 +1,103 @@
+"""Evaluate a run's global policies on the test areas (paper Figs. 3-4).
+
+    python scripts/evaluate.py --run DIR [--workers 2] [--positions FILE] [--areas N]
+                               [--per-area P] [--area-seed S] [--scratch DIR]
+
+For each training stage, the policy checkpointed after its last condition runs without noise
+at every test position (default: 7 areas of 50 positions, ALGORITHM.md section 9). Writes
+DIR/eval.json (per stage and area: mean final distance, mean total cost and success rate with
+95% CIs; forgetting, average final success, forward transfer) and DIR/fig4.png, and prints a
+table. ``--positions FILE`` (a JSON list of [dx, dy] in metres) evaluates those positions
+instead of the areas; ``--scratch DIR`` takes from-scratch iterations to first success from
+another run's summary.json for forward transfer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import replace
+from pathlib import Path
+
+from lolgps_torch.cli import run
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.evaluation.areas import AreaConfig
+from lolgps_torch.evaluation.evaluate import EVAL_FILE, evaluate_run, format_table
+from lolgps_torch.evaluation.plot import plot_fig4
+
+FIGURE_FILE = "fig4.png"
+
+
+def read_positions(path: str) -> list[tuple[float, float]]:
+    """A JSON list of ``[dx, dy]`` pairs (m)."""
+    try:
+        data = json.loads(Path(path).read_text())
+        return [(float(dx), float(dy)) for dx, dy in data]
+    except OSError as error:
+        raise LolgpsError(f"cannot read {path}: {error.strerror or error}") from None
+    except (ValueError, TypeError) as error:
+        raise LolgpsError(f"{path} is not a JSON list of [dx, dy] pairs: {error}") from None
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    defaults = AreaConfig()
+    parser.add_argument("--run", required=True, help="run folder (with config.json, checkpoints/)")
+    parser.add_argument("--workers", type=int, default=2, help="rollout processes (default 2)")
+    parser.add_argument("--positions", default=None, help="JSON list of [dx, dy] to evaluate")
+    parser.add_argument(
+        "--areas", type=int, default=None, help=f"number of test areas (default {defaults.n_areas})"
+    )
+    parser.add_argument(
+        "--per-area",
+        type=int,
+        default=None,
+        help=f"test positions per area (default {defaults.positions_per_area})",
+    )
+    parser.add_argument(
+        "--area-seed",
+        type=int,
+        default=None,
+        help=f"seed of the test positions (default {defaults.seed})",
+    )
+    parser.add_argument(
+        "--scratch", default=None, help="from-scratch run folder, for forward transfer"
+    )
+    parser.add_argument(
+        "--batch-size",
+        type=int,
+        default=10,
+        help="rollouts stepped together per worker (default 10)",
+    )
+    args = parser.parse_args()
+
+    area_flags = {
+        "n_areas": args.areas,
+        "positions_per_area": args.per_area,
+        "seed": args.area_seed,
+    }
+    chosen = {name: value for name, value in area_flags.items() if value is not None}
+    if args.positions is not None and chosen:
+        raise LolgpsError(
+            "--positions replaces the test areas: drop --areas/--per-area/--area-seed"
+        )
+    positions = read_positions(args.positions) if args.positions is not None else None
+    areas = replace(defaults, **chosen) if positions is None else None
+    evaluation = evaluate_run(
+        args.run,
+        args.workers,
+        areas=areas,
+        positions=positions,
+        scratch=args.scratch,
+        batch_size=args.batch_size,
+    )
+    figure = Path(args.run) / FIGURE_FILE
+    plot_fig4(evaluation, figure)
+    print(format_table(evaluation))
+    print(f"wrote {Path(args.run) / EVAL_FILE} and {figure}")
+
+
+if __name__ == "__main__":
+    run(main)
