@@ -126,6 +126,10 @@ def main() -> None:
     def log(record: dict[str, Any]) -> None:
         metrics.write(json.dumps(record) + "\n")
         metrics.flush()
+        if record.get("event") == "distilled":
+            print(f"condition {record['condition'] + 1}/{total}: S-step took {record['time_distill']:.1f}s",
+                  flush=True)
+            return
         print(f"condition {record['condition'] + 1}/{total}  iter {record['iteration']:2d}  "
               f"cost {record['mean_cost']:8.2f}  distance mean {record['mean_distance']:.3f} "
               f"best {record['best_distance']:.3f}  success {record['success_rate']:4.0%}  "
@@ -135,8 +139,7 @@ def main() -> None:
     def done(entry: dict[str, Any]) -> None:
         print(f"condition {entry['condition'] + 1}/{total} done: first success at iteration "
               f"{entry['first_success_iteration']}, p_cur distance {entry['local_final_distance']:.4f}, "
-              f"global policy distance {entry['policy_final_distance_after']:.4f}  "
-              f"(S-step {entry['time_distill']:.1f}s)", flush=True)
+              f"global policy distance {entry['policy_final_distance_after']:.4f}", flush=True)
 
     learner = StreamLearner(task, scfg, out, log)
     summary = learner.run(conditions, done)

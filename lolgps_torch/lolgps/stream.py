@@ -50,6 +50,10 @@ class StreamConfig:
         KL(p_cur || p_pre) <= eps) or ``previous`` (the previous p_cur, a trust region).
     :param replay: distil on the replay of earlier conditions too (off: an ablation).
     :param success_phases: iterations with successful samples needed in D_g (paper: 9).
+    :param augment: perturbed copies of each D_g state added to the current condition's S-step,
+        labelled by the same linear-Gaussian controllers (valid at any state), so the policy
+        learns their feedback, not only their actions along the successful trajectories.
+    :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
     :param seed: seeds every condition's sampling and every S-step.
     """
@@ -61,6 +65,8 @@ class StreamConfig:
     cstep_anchor: str = "previous"
     replay: bool = True
     success_phases: int = 9
+    augment: int = 4
+    augment_scale: float = 2.0
     max_iterations: int = 25
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
@@ -111,7 +117,7 @@ class StreamLearner:
         pre_prior = _policy_prior(cfg.local.dynamics) if cfg.use_pre and self.policy_trained else None
         p_pre: LinearGaussian | None = None
         alpha = cfg.alpha
-        kept: list[dict[str, Tensor]] = []
+        kept: list[Trajectories] = []
         first_success: int | None = None
         iterations = 0
         for i in range(cfg.max_iterations):
@@ -129,7 +135,7 @@ class StreamLearner:
             t3 = time.perf_counter()
             if samples.success.any():
                 first_success = i if first_success is None else first_success
-                kept.append(self._with_targets(samples, learner.p_cur, p_pre))
+                kept.append(Trajectories(*(f[samples.success] for f in samples)))
             self.log(
                 {
                     "condition": index,
@@ -153,8 +159,8 @@ class StreamLearner:
                 break
 
         t0 = time.perf_counter()
-        data = self._condition_samples(kept)
-        losses = self._distill(data)
+        data = self._with_targets(kept, learner.p_cur, p_pre)
+        losses = self._distill(data, learner.p_cur, p_pre)
         t_distill = time.perf_counter() - t0
         local = self._rollout_noiseless(learner.p_cur, offset)
         policy = self._policy_distances([offset])[0]
@@ -170,8 +176,9 @@ class StreamLearner:
             "policy_final_distance_after": policy,
             "policy_success_after": policy < threshold,
             "distill_loss": losses[-1] if losses else None,
-            "time_distill": t_distill,
         }
+        self.log({"condition": index, "event": "distilled", "time_distill": t_distill,
+                  "distill_rows": int(data.x.shape[0]) * task.T})
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         folder = self._checkpoint_dir(index)
         self.policy.save(folder)
@@ -184,40 +191,36 @@ class StreamLearner:
         return bool(self.policy.trained)
 
     def _with_targets(
-        self, samples: Trajectories, p_cur: LinearGaussian, p_pre: LinearGaussian | None
+        self, kept: list[Trajectories], p_cur: LinearGaussian, p_pre: LinearGaussian | None
     ) -> ConditionSamples:
-        """The successful rollouts with p_cur's and p_pre's means and precisions at their states."""
-        ok = samples.success
-        x = samples.x[ok]
-        with torch.no_grad():
-            mean_cur, prec_cur = controller_targets(p_cur, x)
-            if p_pre is not None:
-                mean_pre, prec_pre = controller_targets(p_pre, x)
-            else:
-                mean_pre, prec_pre = torch.zeros_like(mean_cur), torch.zeros_like(prec_cur)
-        has_pre = torch.full((x.shape[0],), p_pre is not None, dtype=torch.bool, device=x.device)
-        return ConditionSamples(
-            x, samples.u[ok], samples.cost[ok], samples.final_distance[ok],
-            mean_cur, prec_cur, mean_pre, prec_pre, has_pre,
-        )
-
-    def _condition_samples(self, kept: list[ConditionSamples]) -> ConditionSamples:
-        """D_g of the condition (possibly empty: M = 0)."""
+        """D_g: the successful rollouts with the final p_cur's and p_pre's action means and
+        precisions at their states (one coherent feedback law per condition; M may be 0)."""
+        lay, T, dev = self.task.layout, self.task.T, self.task.device
         if kept:
-            return ConditionSamples(*(torch.cat(f) for f in zip(*kept, strict=True)))
-        lay, T = self.task.layout, self.task.T
-        opts = {"dtype": torch.float64, "device": self.task.device}
-        return ConditionSamples(
-            torch.zeros(0, T, lay.dX, **opts), torch.zeros(0, T, lay.dU, **opts),
-            torch.zeros(0, T, **opts), torch.zeros(0, **opts),
-            torch.zeros(0, T, lay.dU, **opts), torch.zeros(0, T, lay.dU, lay.dU, **opts),
-            torch.zeros(0, T, lay.dU, **opts), torch.zeros(0, T, lay.dU, lay.dU, **opts),
-            torch.zeros(0, dtype=torch.bool, device=self.task.device),
-        )
+            x, u, cost, final, _ = (torch.cat(f) for f in zip(*kept, strict=True))
+        else:
+            x = torch.zeros(0, T, lay.dX, dtype=torch.float64, device=dev)
+            u = torch.zeros(0, T, lay.dU, dtype=torch.float64, device=dev)
+            cost, final = x.new_zeros(0, T), x.new_zeros(0)
+        mean_cur, prec_cur, mean_pre, prec_pre, has_pre = _targets(x, p_cur, p_pre)
+        return ConditionSamples(x, u, cost, final, mean_cur, prec_cur, mean_pre, prec_pre, has_pre)
 
-    def _distill(self, data: ConditionSamples) -> list[float]:
-        """S-step on this condition's D_g, plus the earlier ones' from the replay when on."""
+    def _distill(
+        self, data: ConditionSamples, p_cur: LinearGaussian, p_pre: LinearGaussian | None
+    ) -> list[float]:
+        """S-step on this condition's D_g (plus ``augment`` perturbed copies of its states,
+        labelled by the same linear-Gaussian controllers), and on the earlier conditions' D_g
+        from the replay when it is on."""
         batches = [data.to_batch()]
+        if data.x.shape[0] > 1 and self.config.augment > 0:
+            x = data.x
+            spread = (x - x.mean(0)).std(0)  # [T, dX] across this condition's successes
+            gen = torch.Generator().manual_seed(self.config.seed * 1000 + len(self.summary))
+            noise = torch.randn(self.config.augment, *x.shape, generator=gen, dtype=x.dtype)
+            x_aug = (x + self.config.augment_scale * spread * noise.to(x.device)).flatten(0, 1)
+            aug = ConditionSamples(x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0],
+                                   *_targets(x_aug, p_cur, p_pre))
+            batches.append(aug.to_batch())
         earlier = self.replay.conditions() if self.config.replay else []
         if earlier:
             batches.append(self.replay.load(earlier, device=self.task.device))
@@ -278,6 +281,21 @@ def _write_json(path: str, data: Any) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+def _targets(
+    x: Tensor, p_cur: LinearGaussian, p_pre: LinearGaussian | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Means and precisions of p_cur and p_pre at states ``x: [M, T, dX]`` (zeros and
+    ``has_pre`` false without p_pre)."""
+    with torch.no_grad():
+        mean_cur, prec_cur = controller_targets(p_cur, x)
+        if p_pre is not None:
+            mean_pre, prec_pre = controller_targets(p_pre, x)
+        else:
+            mean_pre, prec_pre = torch.zeros_like(mean_cur), torch.zeros_like(prec_cur)
+    has_pre = torch.full((x.shape[0],), p_pre is not None, dtype=torch.bool, device=x.device)
+    return mean_cur, prec_cur, mean_pre, prec_pre, has_pre
 
 
 def _policy_prior(d: DynamicsConfig) -> GMMPrior:

@@ -1,0 +1,102 @@
+"""The LOLGPS stream end to end at CI size, its resume after SIGKILL, and its determinism."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.policy import GaussianPolicy
+
+SCRIPT = [sys.executable, "scripts/run_stream.py", "--urdf", "robots/kuka_peg.urdf"]
+SMALL = ["--max-iterations", "7", "--success-phases", "1", "--distill-steps", "200"]
+
+
+def _stream(tmp: Path, out: str, *extra: str) -> subprocess.CompletedProcess[str]:
+    conditions = tmp / "conditions.json"
+    conditions.write_text(json.dumps([[0.0, 0.0], [0.01, -0.01]]))
+    cmd = [*SCRIPT, "--conditions", str(conditions), *SMALL, "--out", str(tmp / out), *extra]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("stream")
+    proc = _stream(tmp, "run")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return tmp
+
+
+def test_ci_stream_distils_and_replays_both_conditions(small_run: Path) -> None:
+    out = small_run / "run"
+    replay = ReplayBuffer(out / "replay.h5")
+    assert replay.conditions() == [0, 1]
+    summary = json.loads((out / "summary.json").read_text())["conditions"]
+    assert [e["condition"] for e in summary] == [0, 1]
+    # learning happened: the first condition's local controller inserts the peg
+    assert summary[0]["first_success_iteration"] is not None
+    assert summary[0]["local_success"]
+    for index in (0, 1):
+        policy = GaussianPolicy.load(out / "checkpoints" / f"after_condition_{index:03d}")
+        assert policy.trained
+    records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    iterations = [r for r in records if "iteration" in r]
+    assert {"time_sample", "time_fit", "time_cstep", "mean_cost"} <= set(iterations[0])
+    assert sum(r.get("event") == "distilled" for r in records) == 2
+    config = json.loads((out / "config.json").read_text())
+    assert config["conditions"] == [[0.0, 0.0], [0.01, -0.01]]
+
+
+def test_same_seed_gives_same_summary(small_run: Path) -> None:
+    proc = _stream(small_run, "again")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    first = (small_run / "run" / "summary.json").read_text()
+    second = (small_run / "again" / "summary.json").read_text()
+    assert first == second
+
+
+def _group_bytes(path: Path, group: str) -> dict[str, bytes]:
+    with h5py.File(path, "r") as f:
+        return {name: np.asarray(ds).tobytes() for name, ds in f[group].items()}
+
+
+def test_resume_after_sigkill_mid_condition(small_run: Path, tmp_path: Path) -> None:
+    conditions = tmp_path / "conditions.json"
+    conditions.write_text(json.dumps([[0.0, 0.0], [0.01, -0.01]]))
+    out = tmp_path / "killed"
+    cmd = [*SCRIPT, "--conditions", str(conditions), *SMALL, "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert proc.stdout is not None
+    deadline = time.time() + 300
+    for line in proc.stdout:  # kill inside the second condition, after the first completed
+        if line.startswith("condition 2/2  iter  1") or time.time() > deadline:
+            break
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    replay = out / "replay.h5"
+    assert ReplayBuffer(replay).conditions() == [0]  # opens cleanly after the kill
+    before = _group_bytes(replay, "condition_000")
+
+    resumed = subprocess.run([*cmd, "--resume"], capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert ReplayBuffer(replay).conditions() == [0, 1]
+    assert _group_bytes(replay, "condition_000") == before
+    summary = json.loads((out / "summary.json").read_text())
+    uninterrupted = json.loads((small_run / "run" / "summary.json").read_text())
+    assert summary == uninterrupted
+
+
+def test_existing_run_without_resume_is_refused(small_run: Path) -> None:
+    proc = _stream(small_run, "run")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1].startswith("error: ")
+    assert "--resume" in proc.stderr
