@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import pybullet as pb
+from lolgps_torch.sim.pybullet_quiet import pb
 import torch
 from torch import Tensor
 

@@ -18,7 +18,7 @@ import statistics
 import time
 from collections.abc import Callable
 
-import pybullet as pb
+from lolgps_torch.sim.pybullet_quiet import pb
 import torch
 
 from lolgps_torch.cli import run

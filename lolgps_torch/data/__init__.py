@@ -1,5 +1,22 @@
-"""Data on disk: the HDF5 replay of successful trajectories (ALGORITHM.md section 7)."""
+"""Data on disk: the HDF5 replay of successful trajectories (ALGORITHM.md section 7), and its
+export as a documented HDF5 or Minari dataset (datasets/README.md)."""
 
+from lolgps_torch.data.export import (
+    ExportedTrajectories,
+    ExportReport,
+    export_hdf5,
+    export_minari,
+    load_dataset,
+)
 from lolgps_torch.data.replay import ConditionRecord, ConditionSamples, ReplayBuffer
 
-__all__ = ["ConditionRecord", "ConditionSamples", "ReplayBuffer"]
+__all__ = [
+    "ConditionRecord",
+    "ConditionSamples",
+    "ExportReport",
+    "ExportedTrajectories",
+    "ReplayBuffer",
+    "export_hdf5",
+    "export_minari",
+    "load_dataset",
+]

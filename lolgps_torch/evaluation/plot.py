@@ -70,7 +70,7 @@ def _draw_curves(ax: Axes, evaluation: dict[str, Any], colours: dict[str, str]) 
     cost_ax.set_ylabel("mean total cost")
     handles, labels = ax.get_legend_handles_labels()
     cost_handles, cost_labels = cost_ax.get_legend_handles_labels()
-    ax.legend(handles + cost_handles, labels + cost_labels, fontsize=7, loc="upper left")
+    ax.legend(handles + cost_handles, labels + cost_labels, fontsize=7, loc="best", ncol=2)
     ax.set_title("Fig. 4: performance against test distance", fontsize=10)
 
 

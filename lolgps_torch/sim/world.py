@@ -19,7 +19,7 @@ import tempfile
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet as pb
+from lolgps_torch.sim.pybullet_quiet import pb
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.sim.arm import ArmSpec

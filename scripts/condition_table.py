@@ -1,0 +1,57 @@
+"""Learn single conditions over holes x seeds (x arms) with scripts/train_condition.py and
+print the markdown table of first successful iteration and final noiseless distance.
+
+    python scripts/condition_table.py --urdf robots/kuka_peg.urdf --seeds 0 1 2 3 4 \\
+        --holes 0 0 0.03 0.03 -0.03 0.03 0.03 -0.03 -0.03 -0.03 --iterations 10 --out runs/table
+
+An iteration succeeds when at least --min-success (default 3) of its 5 samples end with the tip
+within 0.06 m of the target. Each run's metrics.jsonl and summary.json stay under --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+from lolgps_torch.cli import run
+from lolgps_torch.errors import LolgpsError
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--urdf", nargs="+", default=["robots/kuka_peg.urdf"], help="one or more arms")
+    parser.add_argument("--holes", type=float, nargs="+", default=[0.0, 0.0], help="dx dy pairs (m)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--min-success", type=int, default=3)
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args()
+    if len(args.holes) % 2:
+        raise LolgpsError("--holes needs dx dy pairs")
+    holes = list(zip(args.holes[::2], args.holes[1::2], strict=True))
+    print("| arm | hole (m) | seed | first success (iteration) | noiseless final distance (m) |")
+    print("|---|---|---|---|---|")
+    for urdf in args.urdf:
+        arm = os.path.splitext(os.path.basename(urdf))[0]
+        for dx, dy in holes:
+            for seed in args.seeds:
+                out = os.path.join(args.out, f"{arm}_{dx:+.3f}_{dy:+.3f}_s{seed}")
+                cmd = [sys.executable, "scripts/train_condition.py", "--urdf", urdf, "--hole", str(dx), str(dy),
+                       "--seed", str(seed), "--iterations", str(args.iterations), "--out", out]
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                if proc.returncode != 0:
+                    raise LolgpsError(f"{' '.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1]}")
+                with open(os.path.join(out, "metrics.jsonl")) as fh:
+                    rates = [json.loads(line)["success_rate"] for line in fh]
+                first = next((i for i, r in enumerate(rates) if r * 5 >= args.min_success - 1e-9), None)
+                with open(os.path.join(out, "summary.json")) as fh:
+                    final = json.load(fh)["noiseless_final_distance"]
+                print(f"| {arm} | ({dx:+.3f}, {dy:+.3f}) | {seed} | {'-' if first is None else first} | {final:.4f} |",
+                      flush=True)
+
+
+if __name__ == "__main__":
+    run(main)
