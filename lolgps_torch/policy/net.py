@@ -43,9 +43,9 @@ class PolicyConfig:
     """
 
     hidden_sizes: tuple[int, ...] = (42, 42, 42, 42)
-    learning_rate: float = 1e-3
-    batch_size: int = 64
-    steps: int = 2000
+    learning_rate: float = 3e-3
+    batch_size: int = 128
+    steps: int = 3000
     std_floor: float = 1e-3
     seed: int = 0
     num_threads: int | None = 1

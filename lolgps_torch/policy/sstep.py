@@ -157,7 +157,8 @@ def distill(
     """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8).
 
     Steps: whitening from ``batch.x``; ``Sigma_pi`` in closed form (:func:`optimal_variance`);
-    then ``config.steps`` Adam steps (fresh optimiser state) on minibatches of
+    then ``config.steps`` Adam steps (fresh optimiser state, learning rate decayed along a
+    cosine to 5% of ``config.learning_rate``) on minibatches of
     ``config.batch_size`` rows drawn uniformly with replacement, from the current weights (the
     policy keeps what earlier S-steps taught it), on ``config.num_threads`` intra-op threads.
     Only the precision-weighted regression term depends on theta; the loss recorded per step is
@@ -179,6 +180,10 @@ def distill(
     with torch.no_grad():
         constants = _row_constants(policy.covariance(), batch)  # [M]
     optimiser = torch.optim.Adam(policy.net.parameters(), lr=config.learning_rate)
+    # cosine decay to 5% of the rate: large early steps, a settled fit at the end
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimiser, T_max=config.steps, eta_min=0.05 * config.learning_rate
+    )
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
     history: list[float] = []
     with _intra_op_threads(config.num_threads):
@@ -188,6 +193,7 @@ def distill(
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
+            schedule.step()
             history.append(loss.item())
     policy.trained = True
     return history
