@@ -73,6 +73,10 @@ class StreamConfig:
     policy: PolicyConfig = field(default_factory=PolicyConfig)
 
 
+# a condition's D_g with the controllers that label it (p_cur, p_pre)
+Labelled = tuple[ConditionSamples, LinearGaussian, LinearGaussian | None]
+
+
 def policy_actor(policy: GaussianPolicy, noise: Tensor | None = None) -> Actor:
     """The global policy: its mean action, plus ``chol(Sigma_pi) eps_t`` when given noise
     ``eps: [N, T, dU]``."""
@@ -136,23 +140,8 @@ class StreamLearner:
             if samples.success.any():
                 first_success = i if first_success is None else first_success
                 kept.append(Trajectories(*(f[samples.success] for f in samples)))
-            self.log(
-                {
-                    "condition": index,
-                    "iteration": i,
-                    "alpha": float(alpha) if p_pre is not None and i > 0 else 0.0,
-                    "mean_cost": float(samples.cost.sum(1).mean()),
-                    "mean_distance": float(samples.final_distance.mean()),
-                    "best_distance": float(samples.final_distance.min()),
-                    "success_rate": float(samples.success.double().mean()),
-                    "epsilon": epsilon,
-                    "eta": eta,
-                    "kl": kl,
-                    "time_sample": t1 - t0,
-                    "time_fit": t2 - t1,
-                    "time_cstep": t3 - t2,
-                }
-            )
+            self.log(self._iteration_record(index, i, samples, epsilon, eta, kl, (t0, t1, t2, t3),
+                                            alpha if p_pre is not None and i > 0 else 0.0))
             if cfg.alpha_schedule == "dynamic":
                 alpha = min(1.0, alpha + cfg.alpha_step)
             if len(kept) >= cfg.success_phases:
@@ -160,7 +149,7 @@ class StreamLearner:
 
         t0 = time.perf_counter()
         data = self._with_targets(kept, learner.p_cur, p_pre)
-        losses = self._distill(data, learner.p_cur, p_pre)
+        losses = self._distill([(data, learner.p_cur, p_pre)], cfg.seed * 1000 + index)
         t_distill = time.perf_counter() - t0
         local = self._rollout_noiseless(learner.p_cur, offset)
         policy = self._policy_distances([offset])[0]
@@ -186,6 +175,36 @@ class StreamLearner:
         self.replay.append_condition(index, offset, data, iterations)
         return entry
 
+    @staticmethod
+    def _iteration_record(
+        condition: int,
+        iteration: int,
+        samples: Trajectories,
+        epsilon: float,
+        eta: float,
+        kl: float,
+        times: tuple[float, ...],
+        alpha: float = 0.0,
+    ) -> dict[str, Any]:
+        """One metrics.jsonl line; ``times`` are perf_counter stamps around sample, fit, C-step."""
+        t0, t1, t2 = times[:3]
+        t3 = times[3] if len(times) > 3 else time.perf_counter()
+        return {
+            "condition": condition,
+            "iteration": iteration,
+            "alpha": alpha,
+            "mean_cost": float(samples.cost.sum(1).mean()),
+            "mean_distance": float(samples.final_distance.mean()),
+            "best_distance": float(samples.final_distance.min()),
+            "success_rate": float(samples.success.double().mean()),
+            "epsilon": epsilon,
+            "eta": eta,
+            "kl": kl,
+            "time_sample": t1 - t0,
+            "time_fit": t2 - t1,
+            "time_cstep": t3 - t2,
+        }
+
     @property
     def policy_trained(self) -> bool:
         return bool(self.policy.trained)
@@ -205,29 +224,28 @@ class StreamLearner:
         mean_cur, prec_cur, mean_pre, prec_pre, has_pre = _targets(x, p_cur, p_pre)
         return ConditionSamples(x, u, cost, final, mean_cur, prec_cur, mean_pre, prec_pre, has_pre)
 
-    def _distill(
-        self, data: ConditionSamples, p_cur: LinearGaussian, p_pre: LinearGaussian | None
-    ) -> list[float]:
-        """S-step on this condition's D_g (plus ``augment`` perturbed copies of its states,
-        labelled by the same linear-Gaussian controllers), and on the earlier conditions' D_g
-        from the replay when it is on."""
-        batches = [data.to_batch()]
-        if data.x.shape[0] > 1 and self.config.augment > 0:
-            x = data.x
-            spread = (x - x.mean(0)).std(0)  # [T, dX] across this condition's successes
-            gen = torch.Generator().manual_seed(self.config.seed * 1000 + len(self.summary))
-            noise = torch.randn(self.config.augment, *x.shape, generator=gen, dtype=x.dtype)
-            x_aug = (x + self.config.augment_scale * spread * noise.to(x.device)).flatten(0, 1)
-            aug = ConditionSamples(x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0],
-                                   *_targets(x_aug, p_cur, p_pre))
-            batches.append(aug.to_batch())
+    def _distill(self, current: list[Labelled], seed: int) -> list[float]:
+        """S-step on the given conditions' D_g, each with ``augment`` perturbed copies of its
+        states labelled by the same linear-Gaussian controllers, plus the earlier conditions'
+        D_g from the replay when it is on."""
+        gen = torch.Generator().manual_seed(seed)
+        batches = []
+        for data, p_cur, p_pre in current:
+            batches.append(data.to_batch())
+            if data.x.shape[0] > 1 and self.config.augment > 0:
+                x = data.x
+                spread = (x - x.mean(0)).std(0)  # [T, dX] across this condition's successes
+                noise = torch.randn(self.config.augment, *x.shape, generator=gen, dtype=x.dtype)
+                x_aug = (x + self.config.augment_scale * spread * noise.to(x.device)).flatten(0, 1)
+                aug = ConditionSamples(x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0],
+                                       *_targets(x_aug, p_cur, p_pre))
+                batches.append(aug.to_batch())
         earlier = self.replay.conditions() if self.config.replay else []
         if earlier:
             batches.append(self.replay.load(earlier, device=self.task.device))
         batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
         if batch.x.shape[0] == 0:
             return []
-        gen = torch.Generator().manual_seed(self.config.seed * 1000 + len(self.summary))
         return distill(self.policy, batch, self.config.policy, gen)
 
     def _rollout_noiseless(self, p: LinearGaussian, offset: tuple[float, float]) -> float:
