@@ -18,20 +18,37 @@ from lolgps_torch.task import TaskConfig
 def add_task_arguments(parser: argparse.ArgumentParser, default_urdf: str | None = None) -> None:
     """Flags that pick the arm, its peg and its start pose."""
     group = parser.add_argument_group("arm")
-    group.add_argument("--urdf", required=default_urdf is None, default=default_urdf,
-                       help="the arm's URDF file")
-    group.add_argument("--ee-link", default=None,
-                       help="end-effector link (default: end of the longest actuated chain, "
-                       "or 'peg_tip' when the URDF carries its own peg)")
+    group.add_argument(
+        "--urdf", required=default_urdf is None, default=default_urdf, help="the arm's URDF file"
+    )
+    group.add_argument(
+        "--ee-link",
+        default=None,
+        help="end-effector link (default: end of the longest actuated chain, "
+        "or 'peg_tip' when the URDF carries its own peg)",
+    )
     peg = PegConfig()
-    group.add_argument("--peg-length", type=float, default=peg.length,
-                       help="length (m) of the peg attached to arms without one")
-    group.add_argument("--peg-radius", type=float, default=peg.radius,
-                       help="radius (m) of the attached peg")
-    group.add_argument("--peg-axis", default=peg.axis,
-                       help="end-effector link axis the attached peg points along (x, y, z, -x, ...)")
-    group.add_argument("--q0", type=float, nargs="+", default=None,
-                       help="start pose (rad); default: derived by inverse kinematics")
+    group.add_argument(
+        "--peg-length",
+        type=float,
+        default=peg.length,
+        help="length (m) of the peg attached to arms without one",
+    )
+    group.add_argument(
+        "--peg-radius", type=float, default=peg.radius, help="radius (m) of the attached peg"
+    )
+    group.add_argument(
+        "--peg-axis",
+        default=peg.axis,
+        help="end-effector link axis the attached peg points along (x, y, z, -x, ...)",
+    )
+    group.add_argument(
+        "--q0",
+        type=float,
+        nargs="+",
+        default=None,
+        help="start pose (rad); default: derived by inverse kinematics",
+    )
 
 
 def task_config(args: argparse.Namespace) -> TaskConfig:

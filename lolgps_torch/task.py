@@ -9,7 +9,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from lolgps_torch.sim.pybullet_quiet import pb
 import torch
 from torch import Tensor
 
@@ -18,6 +17,7 @@ from lolgps_torch.cost.l12 import CostConfig, PegCost
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.sim.arm import ArmSpec, PegConfig, load_arm
 from lolgps_torch.sim.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
+from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import Actor, Sampler
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout

@@ -18,11 +18,11 @@ import statistics
 import time
 from collections.abc import Callable
 
-from lolgps_torch.sim.pybullet_quiet import pb
 import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.task import PegTask, TaskConfig
 
 
@@ -43,15 +43,20 @@ def bench_physics(task: PegTask, repeats: int) -> dict[str, float]:
     w0 = worlds[0]
     zeros = [0.0] * len(w0.movable)
     w0.reset(q0)
-    gravity = pb.calculateInverseDynamics(w0.body, w0._q_all, zeros, zeros, physicsClientId=w0.client)
-    tau = [gravity[i] for i in w0.actuated_in_movable]  # holds q0, as the pipeline's controller does
+    gravity = pb.calculateInverseDynamics(
+        w0.body, w0._q_all, zeros, zeros, physicsClientId=w0.client
+    )
+    tau = [
+        gravity[i] for i in w0.actuated_in_movable
+    ]  # holds q0, as the pipeline's controller does
 
     def raw() -> None:
         for w in worlds:
             w.reset(q0)
             for _ in range(T * substeps):
-                pb.setJointMotorControlArray(w.body, w.joint_ids, pb.TORQUE_CONTROL, forces=tau,
-                                             physicsClientId=w.client)
+                pb.setJointMotorControlArray(
+                    w.body, w.joint_ids, pb.TORQUE_CONTROL, forces=tau, physicsClientId=w.client
+                )
                 pb.stepSimulation(physicsClientId=w.client)
 
     learner = LocalLearner(task, (0.0, 0.0), LocalConfig(samples=len(worlds)), seed=0)
@@ -62,8 +67,11 @@ def bench_physics(task: PegTask, repeats: int) -> dict[str, float]:
     n = len(worlds) * T * substeps
     raw_rate = n / median_time(raw, repeats)
     pipe_rate = n / median_time(pipeline, repeats)
-    return {"raw_substeps_per_s": raw_rate, "pipeline_substeps_per_s": pipe_rate,
-            "pipeline_over_raw": pipe_rate / raw_rate}
+    return {
+        "raw_substeps_per_s": raw_rate,
+        "pipeline_substeps_per_s": pipe_rate,
+        "pipeline_over_raw": pipe_rate / raw_rate,
+    }
 
 
 def bench_algorithm(task: PegTask, repeats: int) -> dict[str, float]:
@@ -77,16 +85,23 @@ def bench_algorithm(task: PegTask, repeats: int) -> dict[str, float]:
     sample = statistics.median(r[0] for r in rows)
     fit = statistics.median(r[1] for r in rows)
     cstep = statistics.median(r[2] for r in rows)
-    return {"sample_s": sample, "fit_s": fit, "cstep_s": cstep,
-            "fit_over_sample": fit / sample, "cstep_over_sample": cstep / sample,
-            "algorithm_over_sample": (fit + cstep) / sample}
+    return {
+        "sample_s": sample,
+        "fit_s": fit,
+        "cstep_s": cstep,
+        "fit_over_sample": fit / sample,
+        "cstep_over_sample": cstep / sample,
+        "algorithm_over_sample": (fit + cstep) / sample,
+    }
 
 
 BENCHES = {"physics": bench_physics, "algorithm": bench_algorithm}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--urdf", default="robots/kuka_peg.urdf")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)

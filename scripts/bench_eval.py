@@ -2,18 +2,21 @@
 positions with one worker (in this process) and with several spawned workers.
 
     python scripts/bench_eval.py [--urdf robots/kuka_peg.urdf] [--positions 60] [--workers 2]
-                                 [--checkpoint DIR]
+                                 [--repeats 3] [--checkpoint DIR]
 
-Times are end to end, as ``evaluate_run`` spends them: building the task (and, for the pool,
-starting the processes) plus the rollouts. The speed-up is ``t_1 / t_workers``.
+Times are end to end, as ``evaluate_run`` spends them: building the task (and starting the
+extra processes, each of which imports torch and builds its own task) plus the rollouts.
+Medians over ``repeats``, the two settings interleaved so drifting load hits both alike; the
+speed-up is ``t_1 / t_workers``. On a shared machine compare the ratio, not the seconds.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import tempfile
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 from lolgps_torch.cli import run
 from lolgps_torch.evaluation.areas import AreaConfig, sample_area_positions
@@ -28,16 +31,20 @@ def bench_eval(
     task: TaskConfig,
     n_positions: int = 60,
     workers: int = 2,
+    repeats: int = 3,
     checkpoint: str | None = None,
     batch_size: int = 10,
 ) -> dict[str, float]:
-    """Seconds to evaluate the first ``n_positions`` default test positions with 1 and with
-    ``workers`` workers, and their ratio ``speedup = t_1 / t_workers``.
+    """Median seconds to evaluate ``n_positions`` test positions (area-first, the default areas
+    with as many positions per area as needed) with 1 and with ``workers`` workers, and their
+    ratio ``speedup = t_1 / t_workers``.
 
     :param checkpoint: policy folder; default an untrained policy with seed 0.
     """
-    positions = [(p[0], p[1]) for p in sample_area_positions(AreaConfig()).reshape(-1, 2).tolist()]
-    positions = positions[:n_positions]
+    areas = AreaConfig()
+    per_area = max(areas.positions_per_area, -(-n_positions // areas.n_areas))
+    sampled = sample_area_positions(replace(areas, positions_per_area=per_area))
+    positions = [(p[0], p[1]) for p in sampled.reshape(-1, 2).tolist()][:n_positions]
     with tempfile.TemporaryDirectory() as scratch:
         if checkpoint is None:
             layout = StateLayout(load_arm(task.urdf, task.ee_link, task.peg).dof)
@@ -47,16 +54,18 @@ def bench_eval(
             Job(checkpoint, tuple(positions[i : i + batch_size]))
             for i in range(0, len(positions), batch_size)
         ]
-        times = {}
-        for n in (1, workers):
-            t0 = time.perf_counter()
-            run_jobs(asdict(task), jobs, n, batch_size)
-            times[n] = time.perf_counter() - t0
+        times: dict[int, list[float]] = {1: [], workers: []}
+        for _ in range(repeats):
+            for n in times:
+                t0 = time.perf_counter()
+                run_jobs(asdict(task), jobs, n, batch_size)
+                times[n].append(time.perf_counter() - t0)
+    one, many = statistics.median(times[1]), statistics.median(times[workers])
     return {
         "positions": float(len(positions)),
-        "one_worker_s": times[1],
-        f"{workers}_workers_s": times[workers],
-        "speedup": times[1] / times[workers],
+        "one_worker_s": one,
+        f"{workers}_workers_s": many,
+        "speedup": one / many,
     }
 
 
@@ -67,9 +76,12 @@ def main() -> None:
     parser.add_argument("--urdf", default="robots/kuka_peg.urdf", help="the arm's URDF")
     parser.add_argument("--positions", type=int, default=60, help="test positions (default 60)")
     parser.add_argument("--workers", type=int, default=2, help="pool size (default 2)")
+    parser.add_argument("--repeats", type=int, default=3, help="timed repeats (default 3)")
     parser.add_argument("--checkpoint", default=None, help="policy folder (default: untrained)")
     args = parser.parse_args()
-    result = bench_eval(TaskConfig(urdf=args.urdf), args.positions, args.workers, args.checkpoint)
+    result = bench_eval(
+        TaskConfig(urdf=args.urdf), args.positions, args.workers, args.repeats, args.checkpoint
+    )
     for name, value in result.items():
         print(f"{name:>16}: {value:.3f}")
 

@@ -21,9 +21,15 @@ from lolgps_torch.errors import LolgpsError
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--urdf", nargs="+", default=["robots/kuka_peg.urdf"], help="one or more arms")
-    parser.add_argument("--holes", type=float, nargs="+", default=[0.0, 0.0], help="dx dy pairs (m)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--urdf", nargs="+", default=["robots/kuka_peg.urdf"], help="one or more arms"
+    )
+    parser.add_argument(
+        "--holes", type=float, nargs="+", default=[0.0, 0.0], help="dx dy pairs (m)"
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--min-success", type=int, default=3)
@@ -39,18 +45,37 @@ def main() -> None:
         for dx, dy in holes:
             for seed in args.seeds:
                 out = os.path.join(args.out, f"{arm}_{dx:+.3f}_{dy:+.3f}_s{seed}")
-                cmd = [sys.executable, "scripts/train_condition.py", "--urdf", urdf, "--hole", str(dx), str(dy),
-                       "--seed", str(seed), "--iterations", str(args.iterations), "--out", out]
+                cmd = [
+                    sys.executable,
+                    "scripts/train_condition.py",
+                    "--urdf",
+                    urdf,
+                    "--hole",
+                    str(dx),
+                    str(dy),
+                    "--seed",
+                    str(seed),
+                    "--iterations",
+                    str(args.iterations),
+                    "--out",
+                    out,
+                ]
                 proc = subprocess.run(cmd, capture_output=True, text=True)
                 if proc.returncode != 0:
-                    raise LolgpsError(f"{' '.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1]}")
+                    raise LolgpsError(
+                        f"{' '.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1]}"
+                    )
                 with open(os.path.join(out, "metrics.jsonl")) as fh:
                     rates = [json.loads(line)["success_rate"] for line in fh]
-                first = next((i for i, r in enumerate(rates) if r * 5 >= args.min_success - 1e-9), None)
+                first = next(
+                    (i for i, r in enumerate(rates) if r * 5 >= args.min_success - 1e-9), None
+                )
                 with open(os.path.join(out, "summary.json")) as fh:
                     final = json.load(fh)["noiseless_final_distance"]
-                print(f"| {arm} | ({dx:+.3f}, {dy:+.3f}) | {seed} | {'-' if first is None else first} | {final:.4f} |",
-                      flush=True)
+                print(
+                    f"| {arm} | ({dx:+.3f}, {dy:+.3f}) | {seed} | {'-' if first is None else first} | {final:.4f} |",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Print what lolgps_torch understood of a URDF arm, and check its kinematics against PyBullet.
 
-    python scripts/inspect_arm.py --urdf robots/kuka_peg.urdf [--ee-link NAME]
+python scripts/inspect_arm.py --urdf robots/kuka_peg.urdf [--ee-link NAME]
 """
 
 from __future__ import annotations
@@ -16,7 +16,9 @@ from lolgps_torch.task import PegTask
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     add_task_arguments(parser)
     parser.add_argument("--checks", type=int, default=5, help="random poses for the FK check")
     args = parser.parse_args()
@@ -27,11 +29,17 @@ def main() -> None:
     print(f"end effector  {arm.ee_link}")
     peg = "carried by the URDF" if arm.peg_link != "lolgps_peg" else "attached by lolgps_torch"
     print(f"peg           link {arm.peg_link} ({peg}), radius {arm.peg_radius:.4f} m")
-    print(f"peg points    tip {arm.point_offsets[0]}, top {arm.point_offsets[1]} in {arm.point_link}")
-    print(f"\n{'joint':<24}{'lower':>9}{'upper':>9}{'effort':>9}{'vel':>8}{'q0':>9}   (deg, N m, rad/s)")
+    print(
+        f"peg points    tip {arm.point_offsets[0]}, top {arm.point_offsets[1]} in {arm.point_link}"
+    )
+    print(
+        f"\n{'joint':<24}{'lower':>9}{'upper':>9}{'effort':>9}{'vel':>8}{'q0':>9}   (deg, N m, rad/s)"
+    )
     for i, name in enumerate(arm.joint_names):
-        print(f"{name:<24}{math.degrees(arm.lower[i]):9.1f}{math.degrees(arm.upper[i]):9.1f}"
-              f"{arm.effort[i]:9.1f}{arm.velocity[i]:8.2f}{math.degrees(task.geometry.q0[i]):9.1f}")
+        print(
+            f"{name:<24}{math.degrees(arm.lower[i]):9.1f}{math.degrees(arm.upper[i]):9.1f}"
+            f"{arm.effort[i]:9.1f}{arm.velocity[i]:8.2f}{math.degrees(task.geometry.q0[i]):9.1f}"
+        )
     lay = task.layout
     print(f"\nstate layout  dX = {lay.dX}, dU = {lay.dU}")
     for block, (lo, hi) in lay.as_dict().items():
@@ -42,14 +50,16 @@ def main() -> None:
     world = task.sampler.worlds[0]
     rng = np.random.default_rng(0)
     lo, hi = np.array(arm.lower), np.array(arm.upper)
-    worst = 0.0
+    worst: float = 0.0
     for _ in range(args.checks):
-        q = lo + (hi - lo) * rng.random(arm.dof)
-        world.reset(q)
-        fk = task.kinematics.points(torch.tensor(q)).numpy()
+        pose = lo + (hi - lo) * rng.random(arm.dof)
+        world.reset(pose)
+        fk = task.kinematics.points(torch.tensor(pose)).numpy()
         worst = max(worst, float(np.abs(fk - world.points()).max()))
     verdict = "OK" if worst < 1e-6 else "MISMATCH"
-    print(f"FK check      {args.checks} random poses, max |pytorch-kinematics - PyBullet| = {worst:.2e} m  {verdict}")
+    print(
+        f"FK check      {args.checks} random poses, max |pytorch-kinematics - PyBullet| = {worst:.2e} m  {verdict}"
+    )
     task.close()
 
 

@@ -34,34 +34,77 @@ METHODS = ("lolgps", "naive", "batch")
 
 def parse_args() -> argparse.Namespace:
     d = StreamConfig()
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     add_task_arguments(parser, default_urdf="robots/kuka_peg.urdf")
-    parser.add_argument("--conditions", default=None,
-                        help="JSON file with a list of planar hole offsets [[dx, dy], ...] (m); "
-                        "default: the paper's train0/train1/train2 stream")
-    parser.add_argument("--method", choices=METHODS, default="lolgps",
-                        help="lolgps; naive sequential (no p_pre, no replay); or batch GPS (all "
-                        "conditions at once, an S-step every iteration; --resume restarts it) "
-                        "(default: lolgps)")
-    parser.add_argument("--alpha", type=float, default=d.alpha,
-                        help=f"weight of p_pre in p_act = alpha p_pre + (1 - alpha) p_cur (default {d.alpha})")
-    parser.add_argument("--alpha-schedule", choices=("constant", "dynamic"), default=d.alpha_schedule,
-                        help=f"dynamic: alpha += {d.alpha_step} per iteration (default {d.alpha_schedule})")
-    parser.add_argument("--cstep-anchor", choices=("previous", "pre"), default=d.cstep_anchor,
-                        help="the C-step's KL anchor once a policy exists: the previous p_cur "
-                        f"(trust region) or p_pre (paper eq. 7) (default {d.cstep_anchor})")
-    parser.add_argument("--samples", type=int, default=d.local.samples,
-                        help=f"rollouts per iteration (default {d.local.samples})")
-    parser.add_argument("--max-iterations", type=int, default=d.max_iterations,
-                        help=f"iteration limit per condition (default {d.max_iterations})")
-    parser.add_argument("--success-phases", type=int, default=d.success_phases,
-                        help=f"iterations with successful samples to collect (default {d.success_phases})")
-    parser.add_argument("--distill-steps", type=int, default=d.policy.steps,
-                        help=f"Adam steps per S-step (default {d.policy.steps})")
-    parser.add_argument("--no-replay", action="store_true", help="distil on the current condition only")
+    parser.add_argument(
+        "--conditions",
+        default=None,
+        help="JSON file with a list of planar hole offsets [[dx, dy], ...] (m); "
+        "default: the paper's train0/train1/train2 stream",
+    )
+    parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default="lolgps",
+        help="lolgps; naive sequential (no p_pre, no replay); or batch GPS (all "
+        "conditions at once, an S-step every iteration; --resume restarts it) "
+        "(default: lolgps)",
+    )
+    parser.add_argument(
+        "--alpha",
+        type=float,
+        default=d.alpha,
+        help=f"weight of p_pre in p_act = alpha p_pre + (1 - alpha) p_cur (default {d.alpha})",
+    )
+    parser.add_argument(
+        "--alpha-schedule",
+        choices=("constant", "dynamic"),
+        default=d.alpha_schedule,
+        help=f"dynamic: alpha += {d.alpha_step} per iteration (default {d.alpha_schedule})",
+    )
+    parser.add_argument(
+        "--cstep-anchor",
+        choices=("previous", "pre"),
+        default=d.cstep_anchor,
+        help="the C-step's KL anchor once a policy exists: the previous p_cur "
+        f"(trust region) or p_pre (paper eq. 7) (default {d.cstep_anchor})",
+    )
+    parser.add_argument(
+        "--samples",
+        type=int,
+        default=d.local.samples,
+        help=f"rollouts per iteration (default {d.local.samples})",
+    )
+    parser.add_argument(
+        "--max-iterations",
+        type=int,
+        default=d.max_iterations,
+        help=f"iteration limit per condition (default {d.max_iterations})",
+    )
+    parser.add_argument(
+        "--success-phases",
+        type=int,
+        default=d.success_phases,
+        help=f"iterations with successful samples to collect (default {d.success_phases})",
+    )
+    parser.add_argument(
+        "--distill-steps",
+        type=int,
+        default=d.policy.steps,
+        help=f"Adam steps per S-step (default {d.policy.steps})",
+    )
+    parser.add_argument(
+        "--no-replay", action="store_true", help="distil on the current condition only"
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=None, help="output folder (default: runs/<method>-seed<S>)")
-    parser.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    parser.add_argument(
+        "--out", default=None, help="output folder (default: runs/<method>-seed<S>)"
+    )
+    parser.add_argument(
+        "--resume", action="store_true", help="continue an interrupted run in --out"
+    )
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     return parser.parse_args()
 
@@ -83,7 +126,9 @@ def stream_config(args: argparse.Namespace) -> StreamConfig:
     )
 
 
-def load_conditions(args: argparse.Namespace) -> tuple[list[tuple[float, float]], list[dict[str, Any]]]:
+def load_conditions(
+    args: argparse.Namespace,
+) -> tuple[list[tuple[float, float]], list[dict[str, Any]]]:
     if args.conditions is None:
         return default_training_stream(AreaConfig(), args.seed)
     try:
@@ -91,7 +136,9 @@ def load_conditions(args: argparse.Namespace) -> tuple[list[tuple[float, float]]
             raw = json.load(fh)
         conditions = [(float(c[0]), float(c[1])) for c in raw]
     except (OSError, ValueError, TypeError, IndexError) as exc:
-        raise LolgpsError(f"--conditions {args.conditions}: expected a JSON list of [dx, dy] ({exc})") from None
+        raise LolgpsError(
+            f"--conditions {args.conditions}: expected a JSON list of [dx, dy] ({exc})"
+        ) from None
     if not conditions:
         raise LolgpsError(f"--conditions {args.conditions} is empty")
     return conditions, [{"name": "stream", "last_condition": len(conditions) - 1}]
@@ -104,17 +151,27 @@ def main() -> None:
     out = args.out or os.path.join("runs", f"{args.method}-seed{args.seed}")
     conditions, stages = load_conditions(args)
     tcfg, scfg = task_config(args), stream_config(args)
-    config = {"method": args.method, "seed": args.seed, "task": asdict(tcfg), "stream": asdict(scfg),
-              "conditions": [list(c) for c in conditions], "stages": stages}
+    config = {
+        "method": args.method,
+        "seed": args.seed,
+        "task": asdict(tcfg),
+        "stream": asdict(scfg),
+        "conditions": [list(c) for c in conditions],
+        "stages": stages,
+    }
     config = json.loads(json.dumps(config))  # tuples -> lists, as stored
     config_path = os.path.join(out, "config.json")
     if os.path.exists(config_path):
         if not args.resume:
-            raise LolgpsError(f"{out} already holds a run; pass --resume to continue it, or another --out")
+            raise LolgpsError(
+                f"{out} already holds a run; pass --resume to continue it, or another --out"
+            )
         with open(config_path) as fh:
             saved = json.load(fh)
         if saved != config:
-            raise LolgpsError(f"{out} holds a run with a different configuration; use another --out")
+            raise LolgpsError(
+                f"{out} holds a run with a different configuration; use another --out"
+            )
     task = PegTask(tcfg, n_worlds=scfg.local.samples, device=args.device)
     for offset in conditions:
         task.check_reachable(offset)
@@ -122,42 +179,53 @@ def main() -> None:
     with open(config_path, "w") as fh:
         json.dump(config, fh, indent=1)
 
-    metrics = open(os.path.join(out, "metrics.jsonl"), "a")
-    total = len(conditions)
+    with open(os.path.join(out, "metrics.jsonl"), "a") as metrics:
+        total = len(conditions)
 
-    def log(record: dict[str, Any]) -> None:
-        metrics.write(json.dumps(record) + "\n")
-        metrics.flush()
-        if record.get("event") == "distilled":
-            print(f"S-step took {record['time_distill']:.1f}s", flush=True)
-            return
-        print(f"condition {record['condition'] + 1}/{total}  iter {record['iteration']:2d}  "
-              f"cost {record['mean_cost']:8.2f}  distance mean {record['mean_distance']:.3f} "
-              f"best {record['best_distance']:.3f}  success {record['success_rate']:4.0%}  "
-              f"[{record['time_sample']:.2f}s sample, {record['time_fit']:.2f}s fit, "
-              f"{record['time_cstep']:.2f}s C-step]", flush=True)
+        def log(record: dict[str, Any]) -> None:
+            metrics.write(json.dumps(record) + "\n")
+            metrics.flush()
+            if record.get("event") == "distilled":
+                print(f"S-step took {record['time_distill']:.1f}s", flush=True)
+                return
+            print(
+                f"condition {record['condition'] + 1}/{total}  iter {record['iteration']:2d}  "
+                f"cost {record['mean_cost']:8.2f}  distance mean {record['mean_distance']:.3f} "
+                f"best {record['best_distance']:.3f}  success {record['success_rate']:4.0%}  "
+                f"[{record['time_sample']:.2f}s sample, {record['time_fit']:.2f}s fit, "
+                f"{record['time_cstep']:.2f}s C-step]",
+                flush=True,
+            )
 
-    def done(entry: dict[str, Any]) -> None:
-        print(f"condition {entry['condition'] + 1}/{total} done: first success at iteration "
-              f"{entry['first_success_iteration']}, p_cur distance {entry['local_final_distance']:.4f}, "
-              f"global policy distance {entry['policy_final_distance_after']:.4f}", flush=True)
+        def done(entry: dict[str, Any]) -> None:
+            print(
+                f"condition {entry['condition'] + 1}/{total} done: first success at iteration "
+                f"{entry['first_success_iteration']}, p_cur distance {entry['local_final_distance']:.4f}, "
+                f"global policy distance {entry['policy_final_distance_after']:.4f}",
+                flush=True,
+            )
 
-    learner = (BatchLearner if args.method == "batch" else StreamLearner)(task, scfg, out, log)
-    summary = learner.run(conditions, done)
-    metrics.close()
+        learner = (BatchLearner if args.method == "batch" else StreamLearner)(task, scfg, out, log)
+        summary = learner.run(conditions, done)
     with open(os.path.join(out, "summary.json.tmp"), "w") as fh:
         json.dump({"method": args.method, "seed": args.seed, "conditions": summary}, fh, indent=1)
     os.replace(os.path.join(out, "summary.json.tmp"), os.path.join(out, "summary.json"))
 
-    print(f"\n{'cond':>4} {'offset (m)':>17} {'iters':>5} {'1st ok':>6} {'p_cur':>8} "
-          f"{'pi after':>9} {'pi end':>8}")
+    print(
+        f"\n{'cond':>4} {'offset (m)':>17} {'iters':>5} {'1st ok':>6} {'p_cur':>8} "
+        f"{'pi after':>9} {'pi end':>8}"
+    )
     for e in summary:
         first = "-" if e["first_success_iteration"] is None else str(e["first_success_iteration"])
-        print(f"{e['condition']:>4} ({e['offset'][0]:+.3f}, {e['offset'][1]:+.3f}) {e['iterations']:>5} "
-              f"{first:>6} {e['local_final_distance']:8.4f} {e['policy_final_distance_after']:9.4f} "
-              f"{e['policy_final_distance_end']:8.4f}")
+        print(
+            f"{e['condition']:>4} ({e['offset'][0]:+.3f}, {e['offset'][1]:+.3f}) {e['iterations']:>5} "
+            f"{first:>6} {e['local_final_distance']:8.4f} {e['policy_final_distance_after']:9.4f} "
+            f"{e['policy_final_distance_end']:8.4f}"
+        )
     solved = sum(e["policy_success_end"] for e in summary)
-    print(f"global policy alone succeeds at {solved}/{len(summary)} training positions; results in {out}")
+    print(
+        f"global policy alone succeeds at {solved}/{len(summary)} training positions; results in {out}"
+    )
     task.close()
 
 

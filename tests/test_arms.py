@@ -21,8 +21,10 @@ XARM = os.path.join(DATA, "xarm/xarm6_robot.urdf")
 PANDA = os.path.join(DATA, "franka_panda/panda.urdf")
 
 LINK = '<link name="{n}"><inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>'
-JOINT = ('<joint name="{n}" type="{t}"><parent link="{p}"/><child link="{c}"/><origin xyz="0 0 {z}"/>'
-         '<axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="10" velocity="2"/></joint>')
+JOINT = (
+    '<joint name="{n}" type="{t}"><parent link="{p}"/><child link="{c}"/><origin xyz="0 0 {z}"/>'
+    '<axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="10" velocity="2"/></joint>'
+)
 
 
 def _urdf(tmp_path: Path, joint_type: str, length: float) -> str:
@@ -54,12 +56,18 @@ def test_xarm_fk_matches_pybullet_with_peg() -> None:
         world.reset(q)
         expected.append(world.points())
     world.close()
-    assert torch.allclose(kin.points(torch.tensor(qs)), torch.tensor(np.stack(expected)), atol=1e-6, rtol=0)
+    assert torch.allclose(
+        kin.points(torch.tensor(qs)), torch.tensor(np.stack(expected)), atol=1e-6, rtol=0
+    )
 
 
 def _inspect(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "scripts/inspect_arm.py", *args], capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "scripts/inspect_arm.py", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_inspect_arm_reports_the_kuka() -> None:
@@ -73,10 +81,19 @@ def test_inspect_arm_reports_the_kuka() -> None:
     ("make", "message"),
     [
         (lambda tmp: str(tmp / "missing.urdf"), "not found"),
-        (lambda tmp: _write(tmp, "bad.urdf", "<robot name='x'><link name='a'></robot>"), "malformed XML"),
+        (
+            lambda tmp: _write(tmp, "bad.urdf", "<robot name='x'><link name='a'></robot>"),
+            "malformed XML",
+        ),
         (lambda tmp: _urdf(tmp, "fixed", 0.3), "no revolute or continuous joints"),
-        (lambda tmp: _write(tmp, "ent.urdf", '<!DOCTYPE r [<!ENTITY e SYSTEM "file:///etc/passwd">]><robot name="r">&e;</robot>'),
-         "entities"),
+        (
+            lambda tmp: _write(
+                tmp,
+                "ent.urdf",
+                '<!DOCTYPE r [<!ENTITY e SYSTEM "file:///etc/passwd">]><robot name="r">&e;</robot>',
+            ),
+            "entities",
+        ),
         (lambda tmp: _urdf(tmp, "revolute", 0.02), "too short"),
     ],
 )

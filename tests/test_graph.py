@@ -19,15 +19,30 @@ def _problem() -> tuple[LinearDynamics, QuadraticCost, QuadraticCost, LinearGaus
     def randn(*shape: int) -> torch.Tensor:
         return torch.randn(*shape, generator=g, dtype=torch.float64)
 
-    F = torch.cat([torch.eye(dX) + 0.1 * randn(dX, dX), 0.3 * randn(dX, dU)], 1).expand(T - 1, -1, -1)
-    dyn = LinearDynamics(F.clone(), 0.05 * randn(T - 1, dX), 0.01 * torch.eye(dX, dtype=torch.float64).expand(T - 1, dX, dX).clone(),
-                         randn(dX), 0.1 * torch.eye(dX, dtype=torch.float64))
+    F = torch.cat([torch.eye(dX) + 0.1 * randn(dX, dX), 0.3 * randn(dX, dU)], 1).expand(
+        T - 1, -1, -1
+    )
+    dyn = LinearDynamics(
+        F.clone(),
+        0.05 * randn(T - 1, dX),
+        0.01 * torch.eye(dX, dtype=torch.float64).expand(T - 1, dX, dX).clone(),
+        randn(dX),
+        0.1 * torch.eye(dX, dtype=torch.float64),
+    )
     A = randn(T, dX + dU, dX + dU)
-    state_cost = QuadraticCost(A @ A.transpose(-1, -2) / (dX + dU), randn(T, dX + dU), torch.zeros(T, dtype=torch.float64))
+    state_cost = QuadraticCost(
+        A @ A.transpose(-1, -2) / (dX + dU), randn(T, dX + dU), torch.zeros(T, dtype=torch.float64)
+    )
     action = torch.zeros(T, dX + dU, dX + dU, dtype=torch.float64)
     action[:, dX:, dX:] = torch.eye(dU)
-    action_cost = QuadraticCost(action, torch.zeros(T, dX + dU, dtype=torch.float64), torch.zeros(T, dtype=torch.float64))
-    p_pre = LinearGaussian(0.2 * randn(T, dU, dX), randn(T, dU), 0.5 * torch.eye(dU, dtype=torch.float64).expand(T, dU, dU).clone())
+    action_cost = QuadraticCost(
+        action, torch.zeros(T, dX + dU, dtype=torch.float64), torch.zeros(T, dtype=torch.float64)
+    )
+    p_pre = LinearGaussian(
+        0.2 * randn(T, dU, dX),
+        randn(T, dU),
+        0.5 * torch.eye(dU, dtype=torch.float64).expand(T, dU, dU).clone(),
+    )
     x = randn(T, dX)  # states where the targets are read
     return dyn, state_cost, action_cost, p_pre, x
 

@@ -11,15 +11,32 @@ import pytest
 
 
 def _train(tmp_path: Path, *args: str) -> list[dict[str, float]]:
-    cmd = [sys.executable, "scripts/train_condition.py", "--seed", "0", "--out", str(tmp_path), *args]
+    cmd = [
+        sys.executable,
+        "scripts/train_condition.py",
+        "--seed",
+        "0",
+        "--out",
+        str(tmp_path),
+        *args,
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
 
 
 def test_kuka_learns_the_nominal_hole(tmp_path: Path) -> None:
-    records = _train(tmp_path, "--urdf", "robots/kuka_peg.urdf", "--hole", "0", "0", "--iterations", "8",
-                     "--stop-at-success")
+    records = _train(
+        tmp_path,
+        "--urdf",
+        "robots/kuka_peg.urdf",
+        "--hole",
+        "0",
+        "0",
+        "--iterations",
+        "8",
+        "--stop-at-success",
+    )
     assert records[0]["success_rate"] == 0.0  # the start pose is away from the hole
     assert records[-1]["success_rate"] >= 0.6  # then at least 3 of 5 samples insert the peg
     assert len(records) <= 8
@@ -34,5 +51,7 @@ def test_panda_learns_the_nominal_hole(tmp_path: Path) -> None:
     import pybullet_data
 
     panda = os.path.join(pybullet_data.getDataPath(), "franka_panda/panda.urdf")
-    records = _train(tmp_path, "--urdf", panda, "--hole", "0", "0", "--iterations", "15", "--stop-at-success")
+    records = _train(
+        tmp_path, "--urdf", panda, "--hole", "0", "0", "--iterations", "15", "--stop-at-success"
+    )
     assert records[-1]["success_rate"] >= 0.6

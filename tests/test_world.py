@@ -48,11 +48,16 @@ def test_fk_matches_pybullet(urdf: str) -> None:
 
 def test_jacobian_matches_finite_differences(task: PegTask) -> None:
     kin = task.kinematics
-    q = task.q0 + 0.3 * torch.randn(5, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    q = task.q0 + 0.3 * torch.randn(
+        5, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(0)
+    )
     eps = 1e-6
     eye = torch.eye(7, dtype=torch.float64)
     fd = torch.stack(
-        [(kin.points(q + eps * eye[i]) - kin.points(q - eps * eye[i])).reshape(5, 6) / (2 * eps) for i in range(7)],
+        [
+            (kin.points(q + eps * eye[i]) - kin.points(q - eps * eye[i])).reshape(5, 6) / (2 * eps)
+            for i in range(7)
+        ],
         dim=-1,
     )
     assert torch.allclose(kin.jacobian(q), fd, atol=1e-8)
@@ -66,7 +71,7 @@ def test_cost_gradient_and_gauss_newton_hessian(task: PegTask) -> None:
     u = torch.randn(N, T, dU, dtype=torch.float64, generator=gen)
     targets = task.targets([(0.01, -0.02)])[0]
     e = task.cost.expand(x, u, targets)
-    assert torch.allclose(e.l, task.cost.evaluate(x, u, targets))
+    assert torch.allclose(e.value, task.cost.evaluate(x, u, targets))
 
     def total(y: torch.Tensor) -> torch.Tensor:
         return task.cost.evaluate(y[..., :dX], y[..., dX:], targets).sum()
@@ -92,7 +97,7 @@ def test_cost_gradient_and_gauss_newton_hessian(task: PegTask) -> None:
     quad1 = to_quadratic(e1, x[:1], u[:1])
     y1 = torch.cat([x[0], u[0]], -1)
     value = 0.5 * torch.einsum("ti,tij,tj->t", y1, quad1.C, y1) + (quad1.c * y1).sum(-1) + quad1.cc
-    assert torch.allclose(value, e1.l[0])
+    assert torch.allclose(value, e1.value[0])
     assert quad.C.shape == (T, dX + dU, dX + dU)
 
 
@@ -100,9 +105,14 @@ def test_state_points_agree_with_kinematics(task: PegTask) -> None:
     gen = torch.Generator().manual_seed(2)
     act = lambda t, x, rows: 2.0 * torch.randn(x.shape[0], 7, dtype=torch.float64, generator=gen)  # noqa: E731
     traj = task.sample(act, [(0.0, 0.0), (0.02, 0.02)])
-    fk = task.kinematics.points(traj.x[..., task.layout.q]) - task.targets([(0.0, 0.0), (0.02, 0.02)])[:, None]
+    fk = (
+        task.kinematics.points(traj.x[..., task.layout.q])
+        - task.targets([(0.0, 0.0), (0.02, 0.02)])[:, None]
+    )
     assert torch.allclose(traj.x[..., task.layout.points], fk.flatten(-2), atol=1e-6)
-    vel = (traj.x[:, 1:, task.layout.points] - traj.x[:, :-1, task.layout.points]) / task.config.world.dt
+    vel = (
+        traj.x[:, 1:, task.layout.points] - traj.x[:, :-1, task.layout.points]
+    ) / task.config.world.dt
     assert torch.allclose(traj.x[:, 1:, task.layout.point_velocities], vel, atol=1e-9)
 
 
@@ -122,7 +132,9 @@ def _scripted_insertion(task: PegTask, shift: float) -> float:
     q_above, _ = solve_ik(task.kinematics, task.arm, above, 0.0)
     q_in, _ = solve_ik(task.kinematics, task.arm, targets, 0.0)
     s = torch.linspace(0, 1, 40, dtype=torch.float64)[:, None]
-    path = torch.cat([task.q0 + (q_above - task.q0) * s, q_above + (q_in - q_above) * s, q_in.expand(20, -1)])
+    path = torch.cat(
+        [task.q0 + (q_above - task.q0) * s, q_above + (q_in - q_above) * s, q_in.expand(20, -1)]
+    )
     m = task.effective_inertia()
     kp, kd = 100.0 * m, 20.0 * m
 
@@ -147,7 +159,9 @@ def test_same_seed_gives_identical_trajectories(task: PegTask) -> None:
     )
 
     def run(seed: int) -> torch.Tensor:
-        noise = torch.randn(2, T, dU, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+        noise = torch.randn(
+            2, T, dU, dtype=torch.float64, generator=torch.Generator().manual_seed(seed)
+        )
         return task.sample(linear_gaussian_actor(hold, noise), [(0.0, 0.0), (0.01, 0.0)]).x
 
     a, b = run(3), run(3)

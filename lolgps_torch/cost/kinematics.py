@@ -28,7 +28,9 @@ class PegKinematics:
         self.chain = chain.to(dtype=torch.float64, device=self.device)
         names = tuple(self.chain.get_joint_parameter_names())
         if names != arm.joint_names:
-            raise LolgpsError(f"kinematic chain joints {names} differ from the arm's {arm.joint_names}")
+            raise LolgpsError(
+                f"kinematic chain joints {names} differ from the arm's {arm.joint_names}"
+            )
         self.offsets = torch.tensor(arm.point_offsets, dtype=torch.float64, device=self.device)
         self.joint_frames = list(self.chain.get_joint_parent_frame_names())
         self.point_frame = arm.point_link

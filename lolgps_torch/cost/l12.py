@@ -51,10 +51,10 @@ class CostConfig:
 
 
 class CostExpansion(NamedTuple):
-    """Per-sample quadratic expansion, sample-first: l ``[N, T]``, lx ``[N, T, dX]``,
+    """Per-sample quadratic expansion, sample-first: value ``[N, T]``, lx ``[N, T, dX]``,
     lu ``[N, T, dU]``, lxx ``[N, T, dX, dX]``, luu ``[N, T, dU, dU]``, lux ``[N, T, dU, dX]``."""
 
-    l: Tensor
+    value: Tensor
     lx: Tensor
     lu: Tensor
     lxx: Tensor
@@ -130,8 +130,8 @@ class PegCost:
         lu = self.wu * u
         luu = torch.diag_embed(self.wu.expand(N, T, dU))
         lux = x.new_zeros(N, T, dU, dX)
-        l = 0.5 * (self.wu * u * u).sum(-1) + m * value
-        return CostExpansion(l, lx, lu, lxx, luu, lux)
+        total = 0.5 * (self.wu * u * u).sum(-1) + m * value
+        return CostExpansion(total, lx, lu, lxx, luu, lux)
 
 
 def to_quadratic(expansion: CostExpansion, x: Tensor, u: Tensor) -> QuadraticCost:
@@ -149,5 +149,5 @@ def to_quadratic(expansion: CostExpansion, x: Tensor, u: Tensor) -> QuadraticCos
     Hy = (H @ y[..., None])[..., 0]
     C = H.mean(0)
     c = (g - Hy).mean(0)
-    cc = (e.l - (g * y).sum(-1) + 0.5 * (y * Hy).sum(-1)).mean(0)
+    cc = (e.value - (g * y).sum(-1) + 0.5 * (y * Hy).sum(-1)).mean(0)
     return QuadraticCost(C, c, cc)

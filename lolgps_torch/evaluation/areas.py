@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 
-Stage = dict[str, str | int]  # {"name": "train0", "last_condition": 3}
+Stage = dict[str, Any]  # {"name": "train0", "last_condition": 3}
 
 
 @dataclass(frozen=True)
@@ -47,9 +47,9 @@ class AreaConfig:
                 f"need at least one area and one position per area, got {self.n_areas} areas "
                 f"of {self.positions_per_area} positions"
             )
-        if self.radius <= 0 or self.spacing < 0:
+        if self.radius <= 0 or self.spacing <= 0:
             raise LolgpsError(
-                f"area radius must be positive and spacing non-negative, got radius "
+                f"area radius and spacing must be positive, got radius "
                 f"{self.radius} m, spacing {self.spacing} m"
             )
         if self.axis not in ("x", "y"):
@@ -87,16 +87,21 @@ def sample_area_positions(config: AreaConfig) -> Tensor:
 
 
 def area_of(positions: Tensor, config: AreaConfig) -> Tensor:
-    """Index ``[N]`` (int64) of the area whose centre is nearest to each position ``[N, 2]``,
-    or -1 when that centre is further than ``spacing`` away (``radius`` if there is one area).
+    """Index ``[N]`` (int64) of the area each position ``[N, 2]`` belongs to, -1 for none.
 
+    A position belongs to the nearest centre on the row ``c_k = k * spacing * e_axis``,
+    ``k = 0, 1, 2, ...``, if that centre is at most ``spacing`` away and ``k < n_areas``.
     Nearest centre rather than inside the disc: train0's square ``(+-0.02, +-0.02)`` lies
-    0.028 m from the nominal, just outside area 0's default 0.025 m disc, yet trains it.
+    0.028 m from the nominal, just outside area 0's default 0.025 m disc, yet trains it. The
+    row is unbounded so that a position's area does not change with the number of areas.
     """
-    distance = torch.cdist(positions.to(torch.float64).reshape(-1, 2), area_centres(config))
-    nearest, index = distance.min(dim=1)
-    reach = config.spacing if config.n_areas > 1 else config.radius
-    return torch.where(nearest <= reach, index, torch.full_like(index, -1))
+    positions = positions.to(torch.float64).reshape(-1, 2)
+    along = positions[:, 0 if config.axis == "x" else 1]
+    k = torch.round(along / config.spacing).clamp_min(0)
+    centres = torch.zeros_like(positions)
+    centres[:, 0 if config.axis == "x" else 1] = k * config.spacing
+    inside = ((positions - centres).norm(dim=-1) <= config.spacing) & (k < config.n_areas)
+    return torch.where(inside, k.long(), torch.full_like(k, -1, dtype=torch.long))
 
 
 def default_training_stream(

@@ -8,9 +8,9 @@ with :mod:`lolgps_torch.evaluation.metrics`; forgetting, average success and for
 follow.
 
 Rollouts are cut into fixed batches of ``batch_size`` positions, stage by stage, and the
-batches are spread over worker processes. Each batch always holds the same positions and a
-rollout does not depend on what its world ran before, so the results do not depend on the
-number of workers. A PyBullet client cannot be pickled: each worker builds its own
+batches are shared between this process and spawned workers. Each batch always holds the same
+positions and a rollout does not depend on what its world ran before, so the results do not
+depend on the number of workers. A PyBullet client cannot be pickled: each worker builds its own
 :class:`PegTask` and loads the checkpoints itself; only plain data crosses processes.
 """
 
@@ -19,9 +19,14 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
+import multiprocessing.queues
 import os
+import queue
+import traceback
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from multiprocessing.process import BaseProcess
+from multiprocessing.sharedctypes import Synchronized
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -167,40 +172,101 @@ class PolicyRoller:
         self.task.close()
 
 
-_WORKER: PolicyRoller | None = None  # this worker process's roller, set by _start_worker
+class _Failure(NamedTuple):
+    """A worker's exception, as plain data: a user error's message or a bug's traceback."""
+
+    user_error: bool
+    message: str
 
 
-def _start_worker(task: dict[str, Any], n_worlds: int) -> None:
-    global _WORKER
+def _next_job(counter: Synchronized[int], n_jobs: int) -> int | None:
+    """Claim the next unclaimed job index from the shared counter (None: all claimed)."""
+    with counter.get_lock():
+        index = counter.value
+        counter.value += 1
+    return index if index < n_jobs else None
+
+
+def _worker(
+    task: dict[str, Any],
+    n_worlds: int,
+    jobs: list[Job],
+    counter: Synchronized[int],
+    results: multiprocessing.queues.Queue[tuple[int, JobResult | _Failure]],
+) -> None:
+    """A worker process: build its own task, then run jobs until all are claimed."""
     torch.set_num_threads(1)
-    _WORKER = PolicyRoller(task, n_worlds)
+    try:
+        roller = PolicyRoller(task, n_worlds)
+        while (index := _next_job(counter, len(jobs))) is not None:
+            results.put((index, roller(jobs[index])))
+    except LolgpsError as error:
+        results.put((-1, _Failure(True, str(error))))
+    except Exception:  # a bug: its traceback goes to the parent, which raises it
+        results.put((-1, _Failure(False, traceback.format_exc())))
 
 
-def _run_in_worker(job: Job) -> JobResult:
-    if _WORKER is None:
-        raise RuntimeError("worker used before _start_worker")
-    return _WORKER(job)
+def _collect(
+    results: multiprocessing.queues.Queue[tuple[int, JobResult | _Failure]],
+    missing: set[int],
+    processes: Sequence[BaseProcess],
+) -> dict[int, JobResult]:
+    """The workers' results for the job indices ``missing``."""
+    found: dict[int, JobResult] = {}
+    while missing:
+        try:
+            index, result = results.get(timeout=0.5)
+        except queue.Empty:
+            if not any(p.is_alive() for p in processes) and results.empty():
+                codes = [p.exitcode for p in processes]
+                raise LolgpsError(f"evaluation workers died (exit codes {codes})") from None
+            continue
+        if isinstance(result, _Failure):
+            if result.user_error:
+                raise LolgpsError(result.message)
+            raise RuntimeError(f"an evaluation worker failed:\n{result.message}")
+        found[index] = result
+        missing.discard(index)
+    return found
 
 
 def run_jobs(
     task: dict[str, Any], jobs: Sequence[Job], workers: int, n_worlds: int
 ) -> list[JobResult]:
-    """Results of ``jobs`` in order: in this process for one worker (on one torch thread, as
-    the workers), else on a pool of ``workers`` spawned processes."""
+    """Results of ``jobs``, in order, from ``workers`` processes: this one and ``workers - 1``
+    spawned ones, all on one torch thread, each claiming the next unclaimed job. This process
+    starts at once and does not wait for the others' start-up (each imports torch and builds
+    its own task: about 6 CPU-seconds, as much as 350 rollouts), but on busy cores that
+    start-up competes with it, so extra workers pay off only for long evaluations."""
     if workers < 1:
         raise LolgpsError(f"need at least one worker, got {workers}")
-    if workers == 1:
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        roller = PolicyRoller(task, n_worlds)
-        try:
-            return [roller(job) for job in jobs]
-        finally:
-            roller.close()
-            torch.set_num_threads(threads)
     context = multiprocessing.get_context("spawn")
-    with context.Pool(workers, initializer=_start_worker, initargs=(task, n_worlds)) as pool:
-        return pool.map(_run_in_worker, jobs, chunksize=1)
+    counter = context.Value("q", 0)
+    results: multiprocessing.queues.Queue[tuple[int, JobResult | _Failure]] = context.Queue()
+    processes = [
+        context.Process(target=_worker, args=(task, n_worlds, list(jobs), counter, results))
+        for _ in range(min(workers, len(jobs)) - 1)
+    ]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    roller = None
+    try:
+        for process in processes:
+            process.start()
+        roller = PolicyRoller(task, n_worlds)
+        local: dict[int, JobResult] = {}
+        while (index := _next_job(counter, len(jobs))) is not None:
+            local[index] = roller(jobs[index])
+        missing = set(range(len(jobs))) - set(local)
+        found = {**local, **_collect(results, missing, processes)}
+        return [found[i] for i in range(len(jobs))]
+    finally:
+        for process in processes:
+            process.terminate()  # those still starting up when every job was taken
+            process.join()
+        if roller is not None:
+            roller.close()
+        torch.set_num_threads(threads)
 
 
 def _area_groups(areas: AreaConfig) -> list[dict[str, Any]]:

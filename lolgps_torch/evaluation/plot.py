@@ -80,13 +80,24 @@ def _draw_map(
     colours: dict[str, str],
     conditions: Sequence[Sequence[float]],
 ) -> None:
-    """Fig. 3: test-area circles, the test positions faintly, the training positions coloured
-    by stage. The areas' axis runs horizontally."""
+    """Fig. 3: test-area circles, the test positions faintly (explicit positions as open
+    circles), the training positions coloured by stage. The areas' axis runs horizontally."""
     area_config = evaluation.get("area_config") or {}
     h, v = (1, 0) if area_config.get("axis", "y") == "y" else (0, 1)
     names = "xy"
     for group in evaluation["groups"]:
         points = group["positions"]
+        if group["radius"] is None:
+            ax.scatter(
+                [p[h] for p in points],
+                [p[v] for p in points],
+                s=30,
+                marker="o",
+                facecolors="none",
+                edgecolors="0.4",
+                linewidths=0.8,
+            )
+            continue
         ax.scatter(
             [p[h] for p in points],
             [p[v] for p in points],
@@ -95,16 +106,8 @@ def _draw_map(
             alpha=0.5,
             linewidths=0,
         )
-        if group["radius"] is not None:
-            ax.add_patch(
-                Circle(
-                    (group["centre"][h], group["centre"][v]),
-                    group["radius"],
-                    fill=False,
-                    edgecolor="0.3",
-                    linewidth=0.8,
-                )
-            )
+        centre = (group["centre"][h], group["centre"][v])
+        ax.add_patch(Circle(centre, group["radius"], fill=False, edgecolor="0.3", linewidth=0.8))
     first = 0
     for stage in evaluation["training"]["stages"]:
         last = stage["last_condition"]

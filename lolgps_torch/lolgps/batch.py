@@ -58,13 +58,23 @@ class BatchLearner(StreamLearner):
                     kept[m].append(Trajectories(*(f[samples.success] for f in samples)))
                 self.log(self._iteration_record(m, i, samples, epsilon, eta, kl, (t0, t1, t2)))
             labelled: list[Labelled] = [
-                (self._with_targets(kept[m], learners[m].p_cur, pres[m]), learners[m].p_cur, pres[m])
+                (
+                    self._with_targets(kept[m], learners[m].p_cur, pres[m]),
+                    learners[m].p_cur,
+                    pres[m],
+                )
                 for m in range(len(conditions))
             ]
             t0 = time.perf_counter()
             self._distill(labelled, cfg.seed * 1000 + i)
-            self.log({"iteration": i, "event": "distilled", "time_distill": time.perf_counter() - t0,
-                      "condition": len(conditions) - 1})
+            self.log(
+                {
+                    "iteration": i,
+                    "event": "distilled",
+                    "time_distill": time.perf_counter() - t0,
+                    "condition": len(conditions) - 1,
+                }
+            )
             if all(len(k) >= cfg.success_phases for k in kept):
                 break
 

@@ -134,7 +134,9 @@ class LocalLearner:
         self.p_cur = result.policy
         return epsilon, float(result.eta), float(result.kl.sum())
 
-    def iteration(self, p_pre: LinearGaussian | None = None, alpha: float | Tensor = 0.0) -> Iteration:
+    def iteration(
+        self, p_pre: LinearGaussian | None = None, alpha: float | Tensor = 0.0
+    ) -> Iteration:
         """Sample with p_act = alpha p_pre + (1 - alpha) p_cur (p_cur alone without p_pre),
         fit, and take the C-step against p_pre (or the previous p_cur)."""
         p_act = self.p_cur if p_pre is None else mix(p_pre, self.p_cur, alpha)

@@ -22,17 +22,23 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from lolgps_torch.controllers import mix, smoothed_noise
+from lolgps_torch.controllers import mix
 from lolgps_torch.data import ConditionSamples, ReplayBuffer
 from lolgps_torch.dynamics import DynamicsConfig, GMMPrior
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
-from lolgps_torch.policy import DistillBatch, GaussianPolicy, PolicyConfig, distill, linearize_policy
+from lolgps_torch.policy import (
+    DistillBatch,
+    GaussianPolicy,
+    PolicyConfig,
+    distill,
+    linearize_policy,
+)
 from lolgps_torch.sim.rollout import Actor, linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import LinearGaussian, Trajectories
@@ -118,7 +124,9 @@ class StreamLearner:
         """Algorithm 2's inner loop at one condition; returns its summary entry."""
         cfg, task = self.config, self.task
         learner = LocalLearner(task, offset, cfg.local, seed=cfg.seed * 1000 + index)
-        pre_prior = _policy_prior(cfg.local.dynamics) if cfg.use_pre and self.policy_trained else None
+        pre_prior = (
+            _policy_prior(cfg.local.dynamics) if cfg.use_pre and self.policy_trained else None
+        )
         p_pre: LinearGaussian | None = None
         alpha = cfg.alpha
         kept: list[Trajectories] = []
@@ -140,8 +148,18 @@ class StreamLearner:
             if samples.success.any():
                 first_success = i if first_success is None else first_success
                 kept.append(Trajectories(*(f[samples.success] for f in samples)))
-            self.log(self._iteration_record(index, i, samples, epsilon, eta, kl, (t0, t1, t2, t3),
-                                            alpha if p_pre is not None and i > 0 else 0.0))
+            self.log(
+                self._iteration_record(
+                    index,
+                    i,
+                    samples,
+                    epsilon,
+                    eta,
+                    kl,
+                    (t0, t1, t2, t3),
+                    alpha if p_pre is not None and i > 0 else 0.0,
+                )
+            )
             if cfg.alpha_schedule == "dynamic":
                 alpha = min(1.0, alpha + cfg.alpha_step)
             if len(kept) >= cfg.success_phases:
@@ -166,8 +184,14 @@ class StreamLearner:
             "policy_success_after": policy < threshold,
             "distill_loss": losses[-1] if losses else None,
         }
-        self.log({"condition": index, "event": "distilled", "time_distill": t_distill,
-                  "distill_rows": int(data.x.shape[0]) * task.T})
+        self.log(
+            {
+                "condition": index,
+                "event": "distilled",
+                "time_distill": t_distill,
+                "distill_rows": int(data.x.shape[0]) * task.T,
+            }
+        )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         folder = self._checkpoint_dir(index)
         self.policy.save(folder)
@@ -237,8 +261,13 @@ class StreamLearner:
                 spread = (x - x.mean(0)).std(0)  # [T, dX] across this condition's successes
                 noise = torch.randn(self.config.augment, *x.shape, generator=gen, dtype=x.dtype)
                 x_aug = (x + self.config.augment_scale * spread * noise.to(x.device)).flatten(0, 1)
-                aug = ConditionSamples(x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0],
-                                       *_targets(x_aug, p_cur, p_pre))
+                aug = ConditionSamples(
+                    x_aug,
+                    x_aug[..., :0],
+                    x_aug[..., 0],
+                    x_aug[:, 0, 0],
+                    *_targets(x_aug, p_cur, p_pre),
+                )
                 batches.append(aug.to_batch())
         earlier = self.replay.conditions() if self.config.replay else []
         if earlier:
@@ -249,7 +278,9 @@ class StreamLearner:
         return distill(self.policy, batch, self.config.policy, gen)
 
     def _rollout_noiseless(self, p: LinearGaussian, offset: tuple[float, float]) -> float:
-        zero = torch.zeros(1, self.task.T, self.task.layout.dU, dtype=torch.float64, device=self.task.device)
+        zero = torch.zeros(
+            1, self.task.T, self.task.layout.dU, dtype=torch.float64, device=self.task.device
+        )
         return float(self.task.sample(linear_gaussian_actor(p, zero), [offset]).final_distance[0])
 
     def _policy_distances(self, offsets: list[tuple[float, float]]) -> list[float]:
@@ -258,7 +289,9 @@ class StreamLearner:
         return self.task.sample(policy_actor(self.policy), offsets).final_distance.tolist()
 
     # -- the stream ----------------------------------------------------------------------
-    def run(self, conditions: list[tuple[float, float]], on_condition: Callable[[dict[str, Any]], None]) -> list[dict[str, Any]]:
+    def run(
+        self, conditions: list[tuple[float, float]], on_condition: Callable[[dict[str, Any]], None]
+    ) -> list[dict[str, Any]]:
         """Learn every condition not yet completed in ``out``, checkpointing after each."""
         done = self._restore()
         for index, offset in enumerate(conditions):

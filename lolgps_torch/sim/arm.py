@@ -102,24 +102,7 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
     peg = peg or PegConfig()
     if peg.axis not in _AXIS_RPY:
         raise LolgpsError(f"--peg-axis must be one of {', '.join(_AXIS_RPY)}, got {peg.axis!r}")
-    if not os.path.isfile(path):
-        raise LolgpsError(f"URDF not found: {path}")
-    with open(path, "rb") as fh:
-        raw = fh.read()
-    text = raw.decode("utf-8", errors="replace")
-    if "<!ENTITY" in text:
-        raise LolgpsError(f"{path}: URDF declares XML entities; they are not resolved")
-    try:
-        tree = ET.fromstring(text)
-    except ET.ParseError as exc:
-        raise LolgpsError(f"{path}: malformed XML ({exc})") from None
-    try:
-        robot = yourdfpy.URDF.load(
-            io.BytesIO(raw), build_scene_graph=False, load_meshes=False, load_collision_meshes=False
-        )
-    except Exception as exc:  # yourdfpy raises assorted types on schema errors
-        raise LolgpsError(f"{path}: not a valid URDF ({type(exc).__name__}: {exc})") from None
-
+    raw, tree, robot = _parse(path)
     parent_joint = {j.child: j for j in robot.robot.joints}
     links = [link.name for link in robot.robot.links]
     roots = [name for name in links if name not in parent_joint]
@@ -144,12 +127,12 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
     actuated = [j for j in chain if j.type in _ACTUATED]
     if not actuated:
         raise LolgpsError(f"end-effector link {ee_link!r} is not downstream of any actuated joint")
-    for j in chain:
-        if j.type not in _ACTUATED and j.type != "fixed":
-            raise LolgpsError(
-                f"joint {j.name!r} ({j.type}) lies on the chain to {ee_link!r}; "
-                "only revolute, continuous and fixed joints are supported there"
-            )
+    unsupported = [j for j in chain if j.type not in (*_ACTUATED, "fixed")]
+    if unsupported:
+        raise LolgpsError(
+            f"joint {unsupported[0].name!r} ({unsupported[0].type}) lies on the chain to "
+            f"{ee_link!r}; only revolute, continuous and fixed joints are supported there"
+        )
 
     text = _portable_text(tree, os.path.dirname(os.path.abspath(path)))
     carries_peg = CARRIED_PEG_TIP in links and ee_link == CARRIED_PEG_TIP
@@ -158,22 +141,13 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
         peg_radius = _cylinder_radius(robot, peg_link, path)
     else:
         if ATTACHED_PEG in links:
-            raise LolgpsError(f"{path}: link name {ATTACHED_PEG!r} is reserved for the attached peg")
+            raise LolgpsError(
+                f"{path}: link name {ATTACHED_PEG!r} is reserved for the attached peg"
+            )
         text = _attach_peg(text, ee_link, peg)
         point_link, peg_link, peg_radius = ATTACHED_PEG_TIP, ATTACHED_PEG, peg.radius
 
-    def limits(j: yourdfpy.Joint) -> tuple[float, float, float, float]:
-        lim = j.limit
-        if lim is None or lim.effort is None:
-            raise LolgpsError(f"{path}: joint {j.name!r} has no effort limit")
-        if j.type == "continuous" or lim.lower is None or lim.upper is None:
-            lower, upper = -math.pi, math.pi
-        else:
-            lower, upper = float(lim.lower), float(lim.upper)
-        velocity = float(lim.velocity) if lim.velocity else 10.0
-        return lower, upper, float(lim.effort), velocity
-
-    lims = [limits(j) for j in actuated]
+    lims = [_limits(j, path) for j in actuated]
     return ArmSpec(
         urdf_text=text,
         source_path=os.path.abspath(path),
@@ -192,10 +166,44 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
     )
 
 
-def _detect_ee_link(
-    links: list[str], path_joints: Callable[[str], list[yourdfpy.Joint]]
-) -> str:
+def _parse(path: str) -> tuple[bytes, ET.Element, yourdfpy.URDF]:
+    """The file's bytes, its XML tree and yourdfpy's model; one-line errors for bad files."""
+    if not os.path.isfile(path):
+        raise LolgpsError(f"URDF not found: {path}")
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    text = raw.decode("utf-8", errors="replace")
+    if "<!ENTITY" in text:
+        raise LolgpsError(f"{path}: URDF declares XML entities; they are not resolved")
+    try:
+        tree = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise LolgpsError(f"{path}: malformed XML ({exc})") from None
+    try:
+        robot = yourdfpy.URDF.load(
+            io.BytesIO(raw), build_scene_graph=False, load_meshes=False, load_collision_meshes=False
+        )
+    except Exception as exc:  # yourdfpy raises assorted types on schema errors
+        raise LolgpsError(f"{path}: not a valid URDF ({type(exc).__name__}: {exc})") from None
+    return raw, tree, robot
+
+
+def _limits(j: yourdfpy.Joint, path: str) -> tuple[float, float, float, float]:
+    """(lower, upper, effort, velocity); continuous joints get [-pi, pi] for placement."""
+    lim = j.limit
+    if lim is None or lim.effort is None:
+        raise LolgpsError(f"{path}: joint {j.name!r} has no effort limit")
+    if j.type == "continuous" or lim.lower is None or lim.upper is None:
+        lower, upper = -math.pi, math.pi
+    else:
+        lower, upper = float(lim.lower), float(lim.upper)
+    velocity = float(lim.velocity) if lim.velocity else 10.0
+    return lower, upper, float(lim.effort), velocity
+
+
+def _detect_ee_link(links: list[str], path_joints: Callable[[str], list[yourdfpy.Joint]]) -> str:
     """End of the longest actuated chain: most revolute joints, then fixed-only tail, then depth."""
+
     def rank(link: str) -> tuple[int, int, int]:
         chain = path_joints(link)
         n_act = sum(j.type in _ACTUATED for j in chain)

@@ -27,14 +27,16 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
 
     metadata: dict[str, Any] = {"render_modes": []}
 
-    def __init__(self, urdf: str = DEFAULT_URDF, hole_range: float = 0.02, ee_link: str | None = None) -> None:
+    def __init__(
+        self, urdf: str = DEFAULT_URDF, hole_range: float = 0.02, ee_link: str | None = None
+    ) -> None:
         self.task = PegTask(TaskConfig(urdf=urdf, ee_link=ee_link), n_worlds=1)
         self.world = self.task.sampler.worlds[0]
         self.hole_range = hole_range
         effort = np.asarray(self.task.arm.effort, dtype=np.float64)
         dX = self.task.layout.dX
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(dX,), dtype=np.float64)
-        self.action_space = gym.spaces.Box(-effort, effort, dtype=np.float64)
+        self.action_space: gym.spaces.Box = gym.spaces.Box(-effort, effort, dtype=np.float64)
         self._t = 0
         self._targets = self.task.targets([(0.0, 0.0)])
 
@@ -53,19 +55,23 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
         return obs, {"hole_offset": offset}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        u = np.clip(np.asarray(action, dtype=np.float64), self.action_space.low, self.action_space.high)
+        u = np.clip(
+            np.asarray(action, dtype=np.float64), self.action_space.low, self.action_space.high
+        )
         x = torch.from_numpy(self.world.observe())[None, None]
         cost = self.task.cost.evaluate(x, torch.from_numpy(u)[None, None], self._targets[:, None])
         obs = self.world.step(u)
         self._t += 1
         distance = self.world.tip_distance()
         truncated = self._t >= self.task.T
-        info = {"tip_distance": distance,
-                "success": distance < self.task.config.world.success_threshold}
+        info = {
+            "tip_distance": distance,
+            "success": distance < self.task.config.world.success_threshold,
+        }
         return obs, -float(cost), False, truncated, info
 
     def close(self) -> None:
         self.task.close()
 
 
-gym.register(id="lolgps_torch/PegInsertion-v0", entry_point=PegInsertionEnv)
+gym.register(id="lolgps_torch/PegInsertion-v0", entry_point="lolgps_torch.sim.gym_env:PegInsertionEnv")

@@ -98,7 +98,9 @@ def reach(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float]:
     q = (lo + (hi - lo) * torch.rand(4096, arm.dof, generator=gen, dtype=torch.float64)).to(
         kin.device
     )
-    frames = kin.chain.forward_kinematics(torch.zeros(1, arm.dof, dtype=torch.float64), end_only=False)
+    frames = kin.chain.forward_kinematics(
+        torch.zeros(1, arm.dof, dtype=torch.float64), end_only=False
+    )
     joint_frames = kin.chain.get_joint_parent_frame_names()
     shoulder_frame = joint_frames[1] if arm.dof > 1 else joint_frames[0]
     shoulder = frames[shoulder_frame].get_matrix()[0, :3, 3].to(kin.device)
@@ -123,13 +125,11 @@ def place_task(arm: ArmSpec, kin: PegKinematics, config: PlacementConfig) -> Tas
     else:
         start = mouth + torch.tensor(config.start_offset, dtype=torch.float64, device=kin.device)
         separation = -arm.point_offsets[1][2]
-        q, err = solve_ik(
-            kin, arm, vertical_peg_targets(start, separation), config.limit_margin
-        )
+        q, err = solve_ik(kin, arm, vertical_peg_targets(start, separation), config.limit_margin)
         if err > config.ik_tolerance:
             raise LolgpsError(
                 f"no start pose: the peg cannot point down at {start.tolist()} "
                 f"(IK error {err:.3f} m); the arm may be too short to reach the table"
             )
         q0 = tuple(q.tolist())
-    return TaskGeometry(nominal_mouth=tuple(mouth.tolist()), q0=q0)  # type: ignore[arg-type]
+    return TaskGeometry(nominal_mouth=tuple(mouth.tolist()), q0=q0)

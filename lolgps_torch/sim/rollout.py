@@ -50,7 +50,9 @@ class Sampler:
         self.device = torch.device(device)
         self.worlds = [PegWorld(arm, config, nominal_mouth) for _ in range(n_worlds)]
 
-    def rollout(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> tuple[Tensor, Tensor, Tensor]:
+    def rollout(
+        self, act: Actor, offsets: Sequence[tuple[float, float]]
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """Run one episode per hole offset; returns x ``[N, T, dX]``, u ``[N, T, dU]`` and the
         final tip distance ``[N]`` (float64 tensors on the sampler's device)."""
         T = self.config.T
@@ -76,11 +78,10 @@ class Sampler:
             results_x.append(xs)
             results_u.append(us)
             results_d.append([w.tip_distance() for w in worlds])
-        to = {"dtype": torch.float64, "device": self.device}
         return (
-            torch.as_tensor(np.concatenate(results_x), **to),
-            torch.as_tensor(np.concatenate(results_u), **to),
-            torch.as_tensor(np.concatenate(results_d), **to),
+            torch.as_tensor(np.concatenate(results_x), dtype=torch.float64, device=self.device),
+            torch.as_tensor(np.concatenate(results_u), dtype=torch.float64, device=self.device),
+            torch.as_tensor(np.concatenate(results_d), dtype=torch.float64, device=self.device),
         )
 
     def close(self) -> None:

@@ -19,10 +19,10 @@ import tempfile
 from dataclasses import dataclass
 
 import numpy as np
-from lolgps_torch.sim.pybullet_quiet import pb
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.sim.arm import ArmSpec
+from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.state import StateLayout
 
 
@@ -63,7 +63,9 @@ class PegWorld:
         self.client = pb.connect(pb.DIRECT)
         c = self.client
         pb.setPhysicsEngineParameter(
-            fixedTimeStep=config.dt / config.substeps, deterministicOverlappingPairs=1, physicsClientId=c
+            fixedTimeStep=config.dt / config.substeps,
+            deterministicOverlappingPairs=1,
+            physicsClientId=c,
         )
         pb.setGravity(0, 0, -config.gravity, physicsClientId=c)
         with tempfile.NamedTemporaryFile("w", suffix=".urdf", delete=False) as fh:
@@ -100,7 +102,10 @@ class PegWorld:
         self.movable = movable  # every non-fixed joint, the order inverse dynamics expects
         self.actuated_in_movable = [movable.index(j) for j in self.joint_ids]
         pb.setJointMotorControlArray(
-            self.body, self.joint_ids, pb.VELOCITY_CONTROL, forces=[0.0] * len(self.joint_ids),
+            self.body,
+            self.joint_ids,
+            pb.VELOCITY_CONTROL,
+            forces=[0.0] * len(self.joint_ids),
             physicsClientId=c,
         )
         peg_id = links[self.arm.peg_link]
@@ -131,7 +136,9 @@ class PegWorld:
         zc, zh = -(D + 2 * h) / 2, (D + 2 * h) / 2
         for k in range(4):  # a pinwheel of four slabs around the opening
             yaw = pb.getQuaternionFromEuler([0.0, 0.0, k * math.pi / 2])
-            pos, orn = pb.multiplyTransforms([0, 0, 0], yaw, [(outer + W) / 2, (W - outer) / 2, zc], [0, 0, 0, 1])
+            pos, orn = pb.multiplyTransforms(
+                [0, 0, 0], yaw, [(outer + W) / 2, (W - outer) / 2, zc], [0, 0, 0, 1]
+            )
             extents.append([(W - outer) / 2, (W + outer) / 2, zh])
             positions.append(pos)
             orientations.append(orn)
@@ -161,7 +168,10 @@ class PegWorld:
     def points(self) -> np.ndarray:
         """World positions of the tip and top points, ``[2, 3]``."""
         state = pb.getLinkState(
-            self.body, self.point_link_id, computeForwardKinematics=True, physicsClientId=self.client
+            self.body,
+            self.point_link_id,
+            computeForwardKinematics=True,
+            physicsClientId=self.client,
         )
         R = np.array(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
         return np.asarray(state[4]) + self.offsets @ R.T

@@ -31,7 +31,6 @@ from lolgps_torch.controllers import (
     state_marginals,
     trajectory_kl,
 )
-from lolgps_torch.errors import LolgpsError
 from lolgps_torch.trajopt.config import CStepConfig
 from lolgps_torch.trajopt.lqr import AugmentedProblem, augment, solve_with_retry, to_policy
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost

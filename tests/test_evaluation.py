@@ -1,0 +1,316 @@
+"""The Fig. 4 evaluation: area geometry, the statistics against hand-computed answers, the plot,
+and one small evaluation of a fabricated run folder (deterministic, independent of workers)."""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing
+import runpy
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.evaluation import evaluate as evaluate_module
+from lolgps_torch.evaluation.areas import (
+    AreaConfig,
+    area_centres,
+    area_of,
+    default_training_stream,
+    sample_area_positions,
+)
+from lolgps_torch.evaluation.evaluate import EVAL_FILE, evaluate_run, format_table
+from lolgps_torch.evaluation.metrics import (
+    aggregate,
+    average_final_success,
+    first_training_stage,
+    forgetting,
+    forward_transfer,
+    mean_ci,
+    mean_defined,
+    t_quantile,
+    wilson_interval,
+)
+from lolgps_torch.evaluation.plot import plot_fig4
+from lolgps_torch.policy.net import GaussianPolicy
+from lolgps_torch.task import TaskConfig
+
+KUKA = "robots/kuka_peg.urdf"
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "evaluate.py"
+STAGES = [
+    {"name": "train0", "last_condition": 3},
+    {"name": "train1", "last_condition": 5},
+    {"name": "train2", "last_condition": 7},
+]
+
+# -- areas --------------------------------------------------------------------------------
+
+
+def test_area_centres_lie_along_the_lateral_axis() -> None:
+    centres = area_centres(AreaConfig())
+    expected = torch.tensor([[0.0, 0.05 * k] for k in range(7)], dtype=torch.float64)
+    assert torch.allclose(centres, expected, atol=1e-15)
+    along_x = area_centres(AreaConfig(n_areas=3, spacing=0.1, axis="x"))
+    assert torch.allclose(along_x, torch.tensor([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0]]).double())
+
+
+def test_area_positions_are_inside_their_discs_and_deterministic() -> None:
+    config = AreaConfig()
+    positions = sample_area_positions(config)
+    assert positions.shape == (7, 50, 2)
+    radial = (positions - area_centres(config)[:, None]).norm(dim=-1)
+    assert bool((radial <= config.radius).all())
+    assert float(radial.max()) > 0.8 * config.radius  # spread over the disc, not a point
+    assert torch.equal(positions, sample_area_positions(config))
+    assert not torch.equal(positions, sample_area_positions(AreaConfig(seed=1)))
+    fewer = sample_area_positions(AreaConfig(n_areas=3))
+    assert torch.equal(fewer, positions[:3])  # adding areas keeps earlier areas' positions
+
+
+def test_area_config_rejects_bad_geometry() -> None:
+    with pytest.raises(LolgpsError):
+        AreaConfig(radius=0.0)
+    with pytest.raises(LolgpsError):
+        AreaConfig(n_areas=0)
+
+
+def test_default_training_stream() -> None:
+    config = AreaConfig()
+    conditions, stages = default_training_stream(config, seed=3)
+    assert stages == STAGES
+    assert conditions[:4] == [(-0.02, -0.02), (-0.02, 0.02), (0.02, -0.02), (0.02, 0.02)]
+    extra = torch.tensor(conditions[4:])
+    centres = area_centres(config)
+    assert bool(((extra[:2] - centres[2]).norm(dim=-1) <= config.radius).all())
+    assert bool(((extra[2:] - centres[4]).norm(dim=-1) <= config.radius).all())
+    assert default_training_stream(config, seed=3) == (conditions, stages)
+    assert default_training_stream(config, seed=4)[0][4:] != conditions[4:]
+    # train0's corners lie just outside area 0's disc but are nearest to its centre
+    assert area_of(torch.tensor(conditions), config).tolist() == [0, 0, 0, 0, 2, 2, 4, 4]
+    assert area_of(torch.tensor([[0.0, 0.6], [0.06, 0.0]]), config).tolist() == [-1, -1]
+    two_areas = AreaConfig(n_areas=2)  # train1's positions stay in area 2, now not evaluated
+    assert area_of(torch.tensor(conditions), two_areas).tolist() == [0, 0, 0, 0, -1, -1, -1, -1]
+
+
+# -- metrics ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("dof", "table"),  # t_{0.975, nu} from printed tables
+    [(1, 12.7062), (2, 4.3027), (3, 3.1824), (4, 2.7764), (9, 2.2622), (49, 2.0096)],
+)
+def test_t_quantile_matches_tables(dof: int, table: float) -> None:
+    assert t_quantile(0.975, dof) == pytest.approx(table, rel=2e-3)
+
+
+def test_mean_ci() -> None:
+    interval = mean_ci([1.0, 2.0, 3.0, 4.0, 5.0])
+    half = 2.7764 * math.sqrt(2.5) / math.sqrt(5)  # t_{0.975,4} s / sqrt(n), s^2 = 2.5
+    assert interval.mean == 3.0
+    assert interval.low == pytest.approx(3.0 - half, rel=1e-3)
+    assert interval.high == pytest.approx(3.0 + half, rel=1e-3)
+    assert mean_ci([2.0]) == (2.0, None, None)
+    assert mean_ci([4.0, 4.0, 4.0]) == (4.0, 4.0, 4.0)
+
+
+def test_wilson_interval() -> None:
+    p, low, high = wilson_interval(8, 10)  # 8/10: [0.4902, 0.9433] (Wilson 1927)
+    assert p == 0.8
+    assert low == pytest.approx(0.4902, abs=1e-4)
+    assert high == pytest.approx(0.9433, abs=1e-4)
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.0, 0.2775), abs=1e-4)
+    assert wilson_interval(10, 10) == pytest.approx((1.0, 0.7225, 1.0), abs=1e-4)
+
+
+def test_aggregate_per_group() -> None:
+    rows = aggregate(
+        final_distance=[[0.01, 0.03], [0.2, 0.2, 0.2]],
+        total_cost=[[10.0, 20.0], [5.0, 6.0, 7.0]],
+        success=[[True, True], [False, True, False]],
+    )
+    assert [r["n"] for r in rows] == [2, 3]
+    assert rows[0]["final_distance"]["mean"] == pytest.approx(0.02)
+    assert rows[0]["total_cost"]["mean"] == 15.0
+    assert rows[0]["total_cost"]["high"] - 15.0 == pytest.approx(12.7062 * 5.0, rel=1e-3)
+    assert rows[1]["final_distance"]["low"] == pytest.approx(0.2)
+    assert rows[1]["success_rate"]["mean"] == pytest.approx(1 / 3)
+
+
+def test_forgetting_signs_and_training_stage() -> None:
+    # groups: area 0 trained by stage 0, area 1 never, area 2 by stage 1 (conditions 4, 5)
+    trained = first_training_stage([0, 0, 0, 0, 2, 2, -1, 2], STAGES, n_groups=3)
+    assert trained == [0, None, 1]
+    distance = [[0.1, 0.5, 0.9], [0.2, 0.4, 0.05], [0.3, 0.4, 0.04]]
+    assert forgetting(distance, trained, higher_is_better=False) == pytest.approx(
+        [0.2, None, -0.01]  # area 0 got worse by 0.2 m; area 2 improved after its stage
+    )
+    success = [[0.9, 0.0, 0.0], [0.7, 0.1, 1.0], [0.5, 0.2, 0.9]]
+    assert forgetting(success, trained, higher_is_better=True) == pytest.approx([0.4, None, 0.1])
+    assert mean_defined([0.4, None, 0.1]) == pytest.approx(0.25)
+    assert mean_defined([None]) is None
+    assert average_final_success(success[-1]) == pytest.approx(1.6 / 3)
+
+
+def test_forward_transfer() -> None:
+    rows = forward_transfer([2, 6, None, 3], [4, 3, 5, None])
+    assert [r["ratio"] for r in rows] == [0.5, 2.0, None, None]
+    assert [r["saved"] for r in rows] == [2, -3, None, None]
+
+
+# -- plot ---------------------------------------------------------------------------------
+
+
+def synthetic_evaluation() -> dict[str, Any]:
+    config = AreaConfig(n_areas=4, positions_per_area=5)
+    positions = sample_area_positions(config)
+    groups = [
+        {
+            "label": f"area {k}",
+            "centre": [0.0, 0.05 * k],
+            "centre_distance": 0.05 * k,
+            "radius": config.radius,
+            "positions": positions[k].tolist(),
+        }
+        for k in range(4)
+    ]
+    stages = []
+    for s, stage in enumerate(STAGES):
+        distance = [[0.02 + 0.05 * k / (s + 1) + 0.001 * i for i in range(5)] for k in range(4)]
+        cost = [[100.0 * (1 + d) for d in row] for row in distance]
+        success = [[d < 0.06 for d in row] for row in distance]
+        stages.append({**stage, "groups": aggregate(distance, cost, success)})
+    conditions, _ = default_training_stream(AreaConfig(), seed=0)
+    return {
+        "method": "lolgps",
+        "seed": 0,
+        "mode": "areas",
+        "area_config": asdict(config),
+        "success_threshold": 0.06,
+        "groups": groups,
+        "stages": stages,
+        "training": {"conditions": [list(c) for c in conditions], "stages": STAGES},
+    }
+
+
+def test_plot_writes_a_small_png(tmp_path: Path) -> None:
+    path = tmp_path / "fig4.png"
+    plot_fig4(synthetic_evaluation(), path)
+    data = path.read_bytes()
+    assert data.startswith(b"\x89PNG")
+    assert 10_000 < len(data) < 200_000
+    assert list(tmp_path.iterdir()) == [path]
+
+
+# -- end to end on a fabricated run -------------------------------------------------------
+
+
+def fabricate_run(folder: Path, method: str = "lolgps") -> None:
+    """config.json, summary.json and per-stage checkpoints of distinct untrained policies."""
+    conditions, stages = default_training_stream(AreaConfig(), seed=0)
+    config = {
+        "task": asdict(TaskConfig(urdf=KUKA)),
+        "conditions": conditions,
+        "stages": stages,
+        "method": method,
+        "seed": 0,
+    }
+    folder.mkdir()
+    (folder / "config.json").write_text(json.dumps(config))
+    for stage in stages if method != "batch" else stages[-1:]:
+        policy = GaussianPolicy(26, 7)
+        with torch.no_grad():
+            for p in policy.parameters():
+                p.mul_(0.5 + 0.2 * stage["last_condition"])
+        policy.save(folder / "checkpoints" / f"after_condition_{stage['last_condition']:03d}")
+    summary = [
+        {"condition": c, "offset": list(o), "iterations": 4, "first_success_iteration": c % 3}
+        for c, o in enumerate(conditions)
+    ]
+    (folder / "summary.json").write_text(json.dumps({"conditions": summary}))
+
+
+def test_evaluation_is_identical_for_one_and_two_workers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run = tmp_path / "run"
+    fabricate_run(run)
+    areas = AreaConfig(n_areas=2, positions_per_area=2)
+    one = evaluate_run(run, workers=1, areas=areas, batch_size=3, scratch=run)
+    # this process claims no job, so the spawned worker runs them all
+    monkeypatch.setattr(evaluate_module, "_next_job", lambda counter, n_jobs: None)
+    two = evaluate_run(run, workers=2, areas=areas, batch_size=3)
+    written = json.loads((run / EVAL_FILE).read_text())
+    assert [s["per_position"] for s in one["stages"]] == [s["per_position"] for s in two["stages"]]
+    assert one["stages"] == two["stages"] == written["stages"]
+    assert [s["name"] for s in one["stages"]] == ["train0", "train1", "train2"]
+    # distinct policies give distinct rollouts, so identical results are not a coincidence
+    finals = [s["per_position"]["final_distance"] for s in one["stages"]]
+    assert finals[0] != finals[1] != finals[2]
+    assert one["metrics"]["trained_by_stage"] == ["train0", None]
+    forgot = one["metrics"]["forgetting"]["final_distance"]["per_area"]
+    means = [s["groups"][0]["final_distance"]["mean"] for s in one["stages"]]
+    assert forgot == [pytest.approx(means[2] - means[0]), None]
+    assert one["metrics"]["forward_transfer"][1]["iterations"] == 2  # 0-based 1 -> 2 iterations
+    assert one["metrics"]["forward_transfer"][1]["ratio"] == 1.0
+    assert two["metrics"]["forward_transfer"][1]["ratio"] is None  # no scratch run given
+    assert "area 1" in format_table(one)
+
+
+def test_positions_mode_and_batch_runs(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    fabricate_run(run, method="batch")
+    result = evaluate_run(run, workers=1, positions=[(0.0, 0.0), (0.01, 0.1)])
+    assert [s["name"] for s in result["stages"]] == ["train2"]  # batch: final checkpoint only
+    assert [g["label"] for g in result["groups"]] == ["(+0.000, +0.000)", "(+0.010, +0.100)"]
+    assert result["metrics"]["forgetting"] is None
+    assert result["stages"][0]["groups"][0]["final_distance"]["low"] is None
+
+
+def test_broken_runs_raise_one_line_errors(tmp_path: Path) -> None:
+    with pytest.raises(LolgpsError, match="run folder not found"):
+        evaluate_run(tmp_path / "absent")
+    run = tmp_path / "run"
+    fabricate_run(run)
+    (run / "checkpoints" / "after_condition_005" / "policy.pt").unlink()
+    with pytest.raises(LolgpsError, match="cannot load policy"):
+        evaluate_run(run)
+    for name in ("policy.pt", "policy.json"):
+        (run / "checkpoints" / "after_condition_005" / name).unlink(missing_ok=True)
+    (run / "checkpoints" / "after_condition_005").rmdir()
+    with pytest.raises(LolgpsError, match="missing checkpoint for stage train1"):
+        evaluate_run(run)
+    (run / "config.json").write_text('{"task": {"urdf": 1}, "conditions": []')
+    with pytest.raises(LolgpsError, match="corrupt"):
+        evaluate_run(run)
+
+
+@pytest.mark.parametrize("make", ["missing", "corrupt"])
+def test_script_prints_one_error_line(
+    tmp_path: Path, make: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "run"
+    if make == "corrupt":
+        run.mkdir()
+        (run / "config.json").write_text("not json")
+    monkeypatch.setattr(sys, "argv", ["evaluate.py", "--run", str(run)])
+    with pytest.raises(SystemExit) as exit_info:
+        runpy.run_path(str(SCRIPT), run_name="__main__")
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ")
+
+
+def test_a_worker_error_reaches_the_caller(tmp_path: Path) -> None:
+    """The worker loop run in this process: its error crosses the queue to the collector."""
+    GaussianPolicy(20, 7).save(tmp_path)  # a state size the task does not have
+    jobs = [evaluate_module.Job(str(tmp_path), ((0.0, 0.0),))]
+    context = multiprocessing.get_context("spawn")
+    counter, results = context.Value("q", 0), context.Queue()
+    evaluate_module._worker(asdict(TaskConfig(urdf=KUKA)), 1, jobs, counter, results)
+    with pytest.raises(LolgpsError, match="policy maps 20 -> 7 dims"):
+        evaluate_module._collect(results, {0}, [])
