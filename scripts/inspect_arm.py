@@ -42,8 +42,8 @@ def main() -> None:
         )
     lay = task.layout
     print(f"\nstate layout  dX = {lay.dX}, dU = {lay.dU}")
-    for block, (lo, hi) in lay.as_dict().items():
-        print(f"  x[{lo}:{hi}]  {block}")
+    for block, (start, stop) in lay.as_dict().items():
+        print(f"  x[{start}:{stop}]  {block}")
     mouth = task.geometry.nominal_mouth
     print(f"\nnominal hole  mouth at ({mouth[0]:.3f}, {mouth[1]:.3f}, {mouth[2]:.3f}) m")
 
