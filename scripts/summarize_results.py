@@ -1,0 +1,106 @@
+"""Markdown tables for docs/RESULTS.md from finished runs (summary.json, and eval.json if any).
+
+    python scripts/summarize_results.py runs/lolgps-seed0 runs/lolgps-seed1 runs/naive-seed0 ...
+
+Prints: the global policy alone at the training positions (per run), and, from eval.json,
+the success rate and mean final distance per stage and test area averaged over the seeds of
+each method, with the forgetting and the average final success.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+from collections import defaultdict
+from typing import Any
+
+from lolgps_torch.cli import run
+from lolgps_torch.errors import LolgpsError
+
+
+def _load(path: str) -> dict[str, Any]:
+    try:
+        with open(path) as fh:
+            data: dict[str, Any] = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise LolgpsError(f"cannot read {path}: {exc}") from None
+    return data
+
+
+def _mean_sd(values: list[float]) -> str:
+    if not values:
+        return "-"
+    if len(values) == 1:
+        return f"{values[0]:.2f}"
+    return f"{statistics.mean(values):.2f} ± {statistics.stdev(values):.2f}"
+
+
+def training_table(runs: list[str]) -> None:
+    print("| run | method | seed | policy succeeds at training positions (end) | per condition: final distance after its S-step → at the end (m) |")
+    print("|---|---|---|---|---|")
+    for folder in runs:
+        s = _load(os.path.join(folder, "summary.json"))
+        entries = s["conditions"]
+        solved = sum(bool(e["policy_success_end"]) for e in entries)
+        cells = ", ".join(
+            f"{e['policy_final_distance_after']:.3f}→{e['policy_final_distance_end']:.3f}" for e in entries
+        )
+        print(f"| {folder} | {s['method']} | {s['seed']} | {solved}/{len(entries)} | {cells} |")
+
+
+def eval_tables(runs: list[str]) -> None:
+    evals = [(_load(os.path.join(f, "eval.json"))) for f in runs if os.path.exists(os.path.join(f, "eval.json"))]
+    if not evals:
+        return
+    by_method: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for e in evals:
+        by_method[e["method"]].append(e)
+    print("\nSuccess rate per test area (mean ± sd over seeds; area k is centred 0.05·k m from the nominal hole):\n")
+    n_areas = len(evals[0]["stages"][-1]["groups"])
+    print("| method | seeds | stage | " + " | ".join(f"area {k}" for k in range(n_areas)) + " |")
+    print("|---|---|---|" + "---|" * n_areas)
+    for method, items in by_method.items():
+        names = [st["name"] for st in items[0]["stages"]]
+        for i, name in enumerate(names):
+            cells = [
+                _mean_sd([e["stages"][i]["groups"][k]["success_rate"]["mean"] for e in items if i < len(e["stages"])])
+                for k in range(n_areas)
+            ]
+            print(f"| {method} | {len(items)} | {name} | " + " | ".join(cells) + " |")
+    print("\nMean final tip distance per test area (m, mean over seeds):\n")
+    print("| method | stage | " + " | ".join(f"area {k}" for k in range(n_areas)) + " |")
+    print("|---|---|" + "---|" * n_areas)
+    for method, items in by_method.items():
+        for i, st in enumerate(items[0]["stages"]):
+            cells = [
+                f"{statistics.mean(e['stages'][i]['groups'][k]['final_distance']['mean'] for e in items):.3f}"
+                for k in range(n_areas)
+            ]
+            print(f"| {method} | {st['name']} | " + " | ".join(cells) + " |")
+    print("\n| method | seeds | forgetting of success, area 0 (points) | forgetting of success, area 2 (points) | average final success |")
+    print("|---|---|---|---|---|")
+    for method, items in by_method.items():
+        def forgot(area: int, group: list[dict[str, Any]] = items) -> str:
+            vals = []
+            for e in group:
+                f = e["metrics"].get("forgetting")
+                if f and f["success_rate"]["per_area"][area] is not None:
+                    vals.append(100 * f["success_rate"]["per_area"][area])
+            return _mean_sd(vals)
+
+        final = _mean_sd([e["metrics"]["average_final_success"] for e in items])
+        print(f"| {method} | {len(items)} | {forgot(0)} | {forgot(2)} | {final} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", help="run folders")
+    args = parser.parse_args()
+    training_table(args.runs)
+    eval_tables(args.runs)
+
+
+if __name__ == "__main__":
+    run(main)
