@@ -8,6 +8,8 @@
              state extraction, cost) from the same pose, as a ratio.
 - algorithm: one dynamics fit (GMM + per-step regression) and one C-step with its dual
              search at the task's sizes, as ratios to the sampling time of the same iteration.
+- stream:    the share of a short stream's wall time (2 conditions, sampling, fits, C-steps,
+             S-steps, evaluation rollouts) spent inside PyBullet's stepSimulation.
 Medians over the repeats; the machine is noisy, so compare ratios, not seconds.
 """
 
@@ -15,13 +17,17 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import tempfile
 import time
 from collections.abc import Callable
+from typing import Any
 
 import torch
 
+import lolgps_torch.sim.world as world_module
 from lolgps_torch.cli import run
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.lolgps.stream import StreamConfig, StreamLearner
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -95,7 +101,44 @@ def bench_algorithm(task: PegTask, repeats: int) -> dict[str, float]:
     }
 
 
-BENCHES = {"physics": bench_physics, "algorithm": bench_algorithm}
+class _TimedPyBullet:
+    """PyBullet with the time spent inside stepSimulation added up."""
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(pb, name)
+
+    def stepSimulation(self, *args: Any, **kwargs: Any) -> Any:
+        t0 = time.perf_counter()
+        out = pb.stepSimulation(*args, **kwargs)
+        self.seconds += time.perf_counter() - t0
+        return out
+
+
+def bench_stream(task: PegTask, repeats: int) -> dict[str, float]:
+    """Share of a short stream's wall time spent inside physics stepping (2 conditions,
+    the default settings but 3 success phases)."""
+    timed = _TimedPyBullet()
+    world_module.pb = timed  # type: ignore[assignment]
+    try:
+        with tempfile.TemporaryDirectory() as out:
+            config = StreamConfig(success_phases=3, max_iterations=10)
+            learner = StreamLearner(task, config, out, lambda record: None)
+            t0 = time.perf_counter()
+            learner.run([(0.0, 0.0), (0.01, -0.01)], lambda entry: None)
+            wall = time.perf_counter() - t0
+    finally:
+        world_module.pb = pb
+    return {
+        "stream_wall_s": wall,
+        "physics_s": timed.seconds,
+        "physics_share": timed.seconds / wall,
+    }
+
+
+BENCHES = {"physics": bench_physics, "algorithm": bench_algorithm, "stream": bench_stream}
 
 
 def main() -> None:

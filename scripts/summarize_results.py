@@ -38,26 +38,35 @@ def _mean_sd(values: list[float]) -> str:
 
 
 def training_table(runs: list[str]) -> None:
-    print("| run | method | seed | policy succeeds at training positions (end) | per condition: final distance after its S-step → at the end (m) |")
+    print(
+        "| run | method | seed | policy succeeds at training positions (end) | per condition: final distance after its S-step → at the end (m) |"
+    )
     print("|---|---|---|---|---|")
     for folder in runs:
         s = _load(os.path.join(folder, "summary.json"))
         entries = s["conditions"]
         solved = sum(bool(e["policy_success_end"]) for e in entries)
         cells = ", ".join(
-            f"{e['policy_final_distance_after']:.3f}→{e['policy_final_distance_end']:.3f}" for e in entries
+            f"{e['policy_final_distance_after']:.3f}→{e['policy_final_distance_end']:.3f}"
+            for e in entries
         )
         print(f"| {folder} | {s['method']} | {s['seed']} | {solved}/{len(entries)} | {cells} |")
 
 
 def eval_tables(runs: list[str]) -> None:
-    evals = [(_load(os.path.join(f, "eval.json"))) for f in runs if os.path.exists(os.path.join(f, "eval.json"))]
+    evals = [
+        (_load(os.path.join(f, "eval.json")))
+        for f in runs
+        if os.path.exists(os.path.join(f, "eval.json"))
+    ]
     if not evals:
         return
     by_method: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for e in evals:
         by_method[e["method"]].append(e)
-    print("\nSuccess rate per test area (mean ± sd over seeds; area k is centred 0.05·k m from the nominal hole):\n")
+    print(
+        "\nSuccess rate per test area (mean ± sd over seeds; area k is centred 0.05·k m from the nominal hole):\n"
+    )
     n_areas = len(evals[0]["stages"][-1]["groups"])
     print("| method | seeds | stage | " + " | ".join(f"area {k}" for k in range(n_areas)) + " |")
     print("|---|---|---|" + "---|" * n_areas)
@@ -65,7 +74,13 @@ def eval_tables(runs: list[str]) -> None:
         names = [st["name"] for st in items[0]["stages"]]
         for i, name in enumerate(names):
             cells = [
-                _mean_sd([e["stages"][i]["groups"][k]["success_rate"]["mean"] for e in items if i < len(e["stages"])])
+                _mean_sd(
+                    [
+                        e["stages"][i]["groups"][k]["success_rate"]["mean"]
+                        for e in items
+                        if i < len(e["stages"])
+                    ]
+                )
                 for k in range(n_areas)
             ]
             print(f"| {method} | {len(items)} | {name} | " + " | ".join(cells) + " |")
@@ -79,9 +94,12 @@ def eval_tables(runs: list[str]) -> None:
                 for k in range(n_areas)
             ]
             print(f"| {method} | {st['name']} | " + " | ".join(cells) + " |")
-    print("\n| method | seeds | forgetting of success, area 0 (points) | forgetting of success, area 2 (points) | average final success |")
+    print(
+        "\n| method | seeds | forgetting of success, area 0 (points) | forgetting of success, area 2 (points) | average final success |"
+    )
     print("|---|---|---|---|---|")
     for method, items in by_method.items():
+
         def forgot(area: int, group: list[dict[str, Any]] = items) -> str:
             vals = []
             for e in group:
@@ -95,7 +113,9 @@ def eval_tables(runs: list[str]) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("runs", nargs="+", help="run folders")
     args = parser.parse_args()
     training_table(args.runs)
