@@ -4,7 +4,6 @@ the hold controller and smoothed noise."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import pytest
 import torch
@@ -24,15 +23,6 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost
 
 DT = torch.float64
-
-
-@pytest.fixture(autouse=True)
-def _single_thread() -> Iterator[None]:
-    """These are small-op loops; extra intra-op threads only add contention on 2 cores."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _spd(n: int, *batch: int, g: torch.Generator, scale: float = 1.0) -> Tensor:

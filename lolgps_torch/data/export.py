@@ -35,7 +35,7 @@ import lolgps_torch
 from lolgps_torch.cost.kinematics import PegKinematics
 from lolgps_torch.data.replay import FORMAT as REPLAY_FORMAT
 from lolgps_torch.data.replay import VERSION as REPLAY_VERSION
-from lolgps_torch.data.replay import ConditionRecord, ReplayBuffer
+from lolgps_torch.data.replay import ConditionRecord, ReplayBuffer, fsync_path
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.sim.arm import ArmSpec, load_arm
 from lolgps_torch.sim.placement import place_task
@@ -257,15 +257,6 @@ def _read_run(run_dir: str | Path) -> _Run:
     return _Run(trajectories, conditions, root, _metadata(task, arm, mouth, geometry.q0))
 
 
-def _fsync(path: Path) -> None:
-    """Flush ``path`` (a file or a directory) to disk."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _check_output(out: Path, force: bool) -> None:
     if out.exists() and not force:
         raise LolgpsError(f"{out} already exists; pass --force (force=True) to overwrite it")
@@ -361,9 +352,9 @@ def export_hdf5(
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         _write_hdf5(tmp, run, eval_path)
-        _fsync(tmp)
+        fsync_path(tmp)
         os.replace(tmp, out)
-        _fsync(out.parent)
+        fsync_path(out.parent)
     except OSError as error:
         raise LolgpsError(f"cannot write {out}: {_one_line(error)}") from error
     finally:
@@ -547,8 +538,8 @@ def _tree_size(path: Path) -> int:
 
 def _fsync_tree(path: Path) -> None:
     for p in sorted(path.rglob("*"), reverse=True):
-        _fsync(p)
-    _fsync(path)
+        fsync_path(p)
+    fsync_path(path)
 
 
 def export_minari(run_dir: str | Path, out_dir: str | Path, force: bool = False) -> ExportReport:
@@ -595,7 +586,7 @@ def export_minari(run_dir: str | Path, out_dir: str | Path, force: bool = False)
             shutil.rmtree(retired, ignore_errors=True)
             os.replace(out, retired)
         os.replace(staging / out.name, out)
-        _fsync(out.parent)
+        fsync_path(out.parent)
     except (OSError, ValueError) as error:
         raise LolgpsError(f"cannot write Minari dataset {out}: {_one_line(error)}") from error
     finally:

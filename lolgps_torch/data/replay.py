@@ -124,7 +124,7 @@ def _stored_conditions(f: h5py.File) -> list[int]:
     return sorted(int(f[name].attrs["condition"]) for name in f)
 
 
-def _fsync(path: Path) -> None:
+def fsync_path(path: Path) -> None:
     """Flush ``path`` (a file or a directory) to disk."""
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -216,9 +216,9 @@ class ReplayBuffer:
                         compression="gzip",
                         fletcher32=True,
                     )
-            _fsync(tmp)
+            fsync_path(tmp)
             os.replace(tmp, self.path)
-            _fsync(self.path.parent)
+            fsync_path(self.path.parent)
         except OSError as error:
             raise LolgpsError(f"cannot write replay {self.path}: {_one_line(error)}") from error
         finally:

@@ -74,4 +74,6 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
         self.task.close()
 
 
-gym.register(id="lolgps_torch/PegInsertion-v0", entry_point="lolgps_torch.sim.gym_env:PegInsertionEnv")
+gym.register(
+    id="lolgps_torch/PegInsertion-v0", entry_point="lolgps_torch.sim.gym_env:PegInsertionEnv"
+)
