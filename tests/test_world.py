@@ -20,6 +20,7 @@ from lolgps_torch.types import LinearGaussian
 
 KUKA = "robots/kuka_peg.urdf"
 PANDA = os.path.join(pybullet_data.getDataPath(), "franka_panda/panda.urdf")
+XARM = os.path.join(pybullet_data.getDataPath(), "xarm/xarm6_robot.urdf")
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +30,7 @@ def task() -> PegTask:
     t.close()
 
 
-@pytest.mark.parametrize("urdf", [KUKA, PANDA])
+@pytest.mark.parametrize("urdf", [KUKA, PANDA, XARM])  # the peg included
 def test_fk_matches_pybullet(urdf: str) -> None:
     arm = load_arm(urdf)
     kin = PegKinematics(arm)
