@@ -37,6 +37,10 @@ class WorldConfig:
     :param plate_thickness: guide plate thickness. :param table_half_size: table half extent.
     :param friction: lateral friction of table and hole.
     :param success_threshold: tip-to-target distance that counts as inserted.
+    :param damping_margin: joints whose effective inertia is below ``damping_margin * b * dt``
+        (b the URDF joint damping, dt the physics step) get rotor-like inertia added, since
+        PyBullet's explicit joint damping is unstable there (pybullet_data's xArm, damping 1,
+        drifted 7 rad in 5 s with zero action before this).
     """
 
     dt: float = 0.05
@@ -50,6 +54,7 @@ class WorldConfig:
     table_half_size: float = 0.6
     friction: float = 0.2
     success_threshold: float = 0.06
+    damping_margin: float = 1.0
 
 
 class PegWorld:
@@ -108,10 +113,34 @@ class PegWorld:
             forces=[0.0] * len(self.joint_ids),
             physicsClientId=c,
         )
+        self._stabilise_damping()
         peg_id = links[self.arm.peg_link]
         for link in [-1, *links.values()]:
             if link != peg_id:
                 pb.setCollisionFilterGroupMask(self.body, link, 0, 0, physicsClientId=c)
+
+    def _stabilise_damping(self) -> None:
+        """Add rotor-like inertia where a joint's damping would be unstable.
+
+        PyBullet applies joint damping b explicitly, which is stable only while
+        b dt / m < ~2, with m the joint's effective inertia 1 / (M^-1)_jj. Where
+        m < damping_margin b dt, the child link's principal inertias are raised by the
+        difference (as a motor's reflected rotor inertia would); other arms are untouched.
+        """
+        c, dt = self.client, self.config.dt / self.config.substeps
+        zeros = [0.0] * len(self.movable)
+        M = np.asarray(pb.calculateMassMatrix(self.body, zeros, physicsClientId=c))
+        m_eff = 1.0 / np.diag(np.linalg.inv(M))[self.actuated_in_movable]
+        for j, m in zip(self.joint_ids, m_eff, strict=True):
+            need = (
+                self.config.damping_margin
+                * pb.getJointInfo(self.body, j, physicsClientId=c)[6]
+                * dt
+            )
+            if m < need:  # the child link of joint j has index j
+                inertia = pb.getDynamicsInfo(self.body, j, physicsClientId=c)[2]
+                raised = [v + need - m for v in inertia]
+                pb.changeDynamics(self.body, j, localInertiaDiagonal=raised, physicsClientId=c)
 
     def _build_hole(self) -> int:
         """Table slab with a square opening, four tilted guide plates and a floor (static)."""
