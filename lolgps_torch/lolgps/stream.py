@@ -134,7 +134,7 @@ class StreamLearner:
         iterations = 0
         for i in range(cfg.max_iterations):
             iterations = i + 1
-            p_act = learner.p_cur if p_pre is None or i == 0 else mix(p_pre, learner.p_cur, alpha)
+            p_act = learner.p_cur if p_pre is None else mix(p_pre, learner.p_cur, alpha)
             t0 = time.perf_counter()
             samples = learner.sample(p_act)
             t1 = time.perf_counter()
@@ -157,7 +157,7 @@ class StreamLearner:
                     eta,
                     kl,
                     (t0, t1, t2, t3),
-                    alpha if p_pre is not None and i > 0 else 0.0,
+                    alpha if p_pre is not None else 0.0,
                 )
             )
             if cfg.alpha_schedule == "dynamic":
