@@ -37,6 +37,15 @@ def _mean_sd(values: list[float]) -> str:
     return f"{statistics.mean(values):.2f} ± {statistics.stdev(values):.2f}"
 
 
+def label(folder: str) -> str:
+    """The method, with its alpha setting for LOLGPS (ablations share the method name)."""
+    config = _load(os.path.join(folder, "config.json"))
+    if config["method"] != "lolgps":
+        return str(config["method"])
+    stream = config["stream"]
+    return f"lolgps (alpha {stream['alpha']:g} {stream['alpha_schedule']})"
+
+
 def training_table(runs: list[str]) -> None:
     print(
         "| run | method | seed | policy succeeds at training positions (end) | per condition: final distance after its S-step → at the end (m) |"
@@ -50,7 +59,7 @@ def training_table(runs: list[str]) -> None:
             f"{e['policy_final_distance_after']:.3f}→{e['policy_final_distance_end']:.3f}"
             for e in entries
         )
-        print(f"| {folder} | {s['method']} | {s['seed']} | {solved}/{len(entries)} | {cells} |")
+        print(f"| {folder} | {label(folder)} | {s['seed']} | {solved}/{len(entries)} | {cells} |")
 
 
 def eval_tables(runs: list[str]) -> None:
