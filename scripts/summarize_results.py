@@ -63,16 +63,13 @@ def training_table(runs: list[str]) -> None:
 
 
 def eval_tables(runs: list[str]) -> None:
-    evals = [
-        (_load(os.path.join(f, "eval.json")))
-        for f in runs
-        if os.path.exists(os.path.join(f, "eval.json"))
-    ]
-    if not evals:
+    done = [f for f in runs if os.path.exists(os.path.join(f, "eval.json"))]
+    if not done:
         return
+    evals = [_load(os.path.join(f, "eval.json")) for f in done]
     by_method: dict[str, list[dict[str, Any]]] = defaultdict(list)
-    for e in evals:
-        by_method[e["method"]].append(e)
+    for folder, e in zip(done, evals, strict=True):
+        by_method[label(folder)].append(e)
     print(
         "\nSuccess rate per test area (mean ± sd over seeds; area k is centred 0.05·k m from the nominal hole):\n"
     )

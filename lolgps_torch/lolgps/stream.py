@@ -65,7 +65,7 @@ class StreamConfig:
     """
 
     alpha: float = 0.0
-    alpha_schedule: str = "constant"
+    alpha_schedule: str = "dynamic"
     alpha_step: float = 0.005
     use_pre: bool = True
     cstep_anchor: str = "previous"
