@@ -17,9 +17,8 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import torch
-from torch import Tensor
 
-from lolgps_torch.controllers import hold_controller, mix, smoothed_noise
+from lolgps_torch.controllers import hold_controller, smoothed_noise
 from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.sim.rollout import linear_gaussian_actor
@@ -134,17 +133,14 @@ class LocalLearner:
         self.p_cur = result.policy
         return epsilon, float(result.eta), float(result.kl.sum())
 
-    def iteration(
-        self, p_pre: LinearGaussian | None = None, alpha: float | Tensor = 0.0
-    ) -> Iteration:
-        """Sample with p_act = alpha p_pre + (1 - alpha) p_cur (p_cur alone without p_pre),
-        fit, and take the C-step against p_pre (or the previous p_cur)."""
-        p_act = self.p_cur if p_pre is None else mix(p_pre, self.p_cur, alpha)
+    def iteration(self) -> Iteration:
+        """Sample p_cur, fit, and take the C-step against the previous p_cur (trust region)."""
+        p_act = self.p_cur
         t0 = time.perf_counter()
         samples = self.sample(p_act)
         t1 = time.perf_counter()
         fit = self.fit(p_act, samples)
         t2 = time.perf_counter()
-        epsilon, eta, kl = self.improve(fit, self.p_cur if p_pre is None else p_pre)
+        epsilon, eta, kl = self.improve(fit, self.p_cur)
         t3 = time.perf_counter()
         return Iteration(samples, epsilon, eta, kl, self.step_mult, t1 - t0, t2 - t1, t3 - t2)
