@@ -1,6 +1,11 @@
 """Dynamics fitting (ALGORITHM.md section 4): GMM, normal-inverse-Wishart prior, per-step fit."""
 
-from lolgps_torch.dynamics.fit import DynamicsConfig, DynamicsFitter, gaussian_regression
+from lolgps_torch.dynamics.fit import (
+    DynamicsConfig,
+    DynamicsFitter,
+    gaussian_regression,
+    prior_from_config,
+)
 from lolgps_torch.dynamics.gmm import GaussianMixture
 from lolgps_torch.dynamics.prior import GMMPrior, NIWPrior
 
@@ -11,4 +16,5 @@ __all__ = [
     "GaussianMixture",
     "NIWPrior",
     "gaussian_regression",
+    "prior_from_config",
 ]

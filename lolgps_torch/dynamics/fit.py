@@ -98,6 +98,22 @@ class DynamicsConfig:
     seed: int = 0
 
 
+def prior_from_config(c: DynamicsConfig) -> GMMPrior:
+    """A :class:`GMMPrior` with the config's cluster rule, EM settings and strength (used for
+    the dynamics and, over ``[x, pi(x)]``, for linearising the policy)."""
+    return GMMPrior(
+        max_trajectories=c.max_trajectories,
+        max_clusters=c.max_clusters,
+        min_clusters=c.min_clusters,
+        min_points_per_cluster=c.min_points_per_cluster,
+        strength=c.prior_strength,
+        cov_reg=c.cov_reg,
+        em_iterations=c.em_iterations,
+        em_tolerance=c.em_tolerance,
+        seed=c.seed,
+    )
+
+
 class DynamicsFitter:
     """Fits ``x_{t+1} ~ N(F_t [x_t; u_t] + f_t, cov_t)`` and ``x_0 ~ N(x0_mean, x0_cov)`` to the
     samples of one condition, each iteration, with a GMM prior over its recent trajectories.
@@ -114,17 +130,7 @@ class DynamicsFitter:
         self.prior: GMMPrior | None = None
         self.em_history: list[float] = []
         if c.use_prior:
-            self.prior = GMMPrior(
-                max_trajectories=c.max_trajectories,
-                max_clusters=c.max_clusters,
-                min_clusters=c.min_clusters,
-                min_points_per_cluster=c.min_points_per_cluster,
-                strength=c.prior_strength,
-                cov_reg=c.cov_reg,
-                em_iterations=c.em_iterations,
-                em_tolerance=c.em_tolerance,
-                seed=c.seed,
-            )
+            self.prior = prior_from_config(c)
 
     def update(self, x: Tensor, u: Tensor) -> LinearDynamics:
         """Update the prior with samples ``x: [N, T, dX]``, ``u: [N, T, dU]`` and fit to them."""

@@ -17,8 +17,9 @@ from collections.abc import Callable
 from typing import Any
 
 from lolgps_torch.controllers import mix
+from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.lolgps.local import LocalLearner
-from lolgps_torch.lolgps.stream import Labelled, StreamLearner, _policy_prior, _write_json
+from lolgps_torch.lolgps.stream import Labelled, StreamLearner, _write_json
 from lolgps_torch.policy import linearize_policy
 from lolgps_torch.types import LinearGaussian, Trajectories
 
@@ -34,7 +35,7 @@ class BatchLearner(StreamLearner):
             LocalLearner(task, offset, cfg.local, seed=cfg.seed * 1000 + m)
             for m, offset in enumerate(conditions)
         ]
-        priors = [_policy_prior(cfg.local.dynamics) for _ in conditions]
+        priors = [prior_from_config(cfg.local.dynamics) for _ in conditions]
         pres: list[LinearGaussian | None] = [None] * len(conditions)
         kept: list[list[Trajectories]] = [[] for _ in conditions]
         first: list[int | None] = [None] * len(conditions)
@@ -53,10 +54,11 @@ class BatchLearner(StreamLearner):
                 t2 = time.perf_counter()
                 anchor = p_pre if p_pre is not None and cfg.cstep_anchor == "pre" else learner.p_cur
                 epsilon, eta, kl = learner.improve(fit, anchor)
+                t3 = time.perf_counter()
                 if samples.success.any():
                     first[m] = i if first[m] is None else first[m]
                     kept[m].append(Trajectories(*(f[samples.success] for f in samples)))
-                self.log(self._iteration_record(m, i, samples, epsilon, eta, kl, (t0, t1, t2)))
+                self.log(self._iteration_record(m, i, samples, epsilon, eta, kl, (t0, t1, t2, t3)))
             labelled: list[Labelled] = [
                 (
                     self._with_targets(kept[m], learners[m].p_cur, pres[m]),

@@ -30,7 +30,7 @@ from torch import Tensor
 
 from lolgps_torch.controllers import mix
 from lolgps_torch.data import ConditionSamples, ReplayBuffer
-from lolgps_torch.dynamics import DynamicsConfig, GMMPrior
+from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
 from lolgps_torch.policy import (
     DistillBatch,
@@ -125,7 +125,7 @@ class StreamLearner:
         cfg, task = self.config, self.task
         learner = LocalLearner(task, offset, cfg.local, seed=cfg.seed * 1000 + index)
         pre_prior = (
-            _policy_prior(cfg.local.dynamics) if cfg.use_pre and self.policy_trained else None
+            prior_from_config(cfg.local.dynamics) if cfg.use_pre and self.policy_trained else None
         )
         p_pre: LinearGaussian | None = None
         alpha = cfg.alpha
@@ -207,12 +207,12 @@ class StreamLearner:
         epsilon: float,
         eta: float,
         kl: float,
-        times: tuple[float, ...],
+        times: tuple[float, float, float, float],
         alpha: float = 0.0,
     ) -> dict[str, Any]:
-        """One metrics.jsonl line; ``times`` are perf_counter stamps around sample, fit, C-step."""
-        t0, t1, t2 = times[:3]
-        t3 = times[3] if len(times) > 3 else time.perf_counter()
+        """One metrics.jsonl line; ``times`` are the perf_counter stamps before sampling, after
+        sampling, after fitting and after the C-step."""
+        t0, t1, t2, t3 = times
         return {
             "condition": condition,
             "iteration": iteration,
@@ -347,15 +347,3 @@ def _targets(
             mean_pre, prec_pre = torch.zeros_like(mean_cur), torch.zeros_like(prec_cur)
     has_pre = torch.full((x.shape[0],), p_pre is not None, dtype=torch.bool, device=x.device)
     return mean_cur, prec_cur, mean_pre, prec_pre, has_pre
-
-
-def _policy_prior(d: DynamicsConfig) -> GMMPrior:
-    """The GMM prior over ``[x, pi(x)]`` for linearising the policy, set up as the dynamics'."""
-    return GMMPrior(
-        max_trajectories=d.max_trajectories,
-        max_clusters=d.max_clusters,
-        min_clusters=d.min_clusters,
-        min_points_per_cluster=d.min_points_per_cluster,
-        strength=d.prior_strength,
-        seed=d.seed,
-    )
