@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 import torch
 
+from lolgps_torch.cost.l12 import CostConfig
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.sim.arm import PegConfig
 from lolgps_torch.sim.placement import PlacementConfig
@@ -49,13 +50,21 @@ def add_task_arguments(parser: argparse.ArgumentParser, default_urdf: str | None
         default=None,
         help="start pose (rad); default: derived by inverse kinematics",
     )
+    cost = CostConfig()
+    group.add_argument(
+        "--action-weight",
+        type=float,
+        default=cost.action_weight,
+        help="torque cost wu_j = action_weight / effort_j^2 (default %(default)s)",
+    )
 
 
 def task_config(args: argparse.Namespace) -> TaskConfig:
     """The :class:`TaskConfig` the arm flags describe."""
     peg = PegConfig(length=args.peg_length, radius=args.peg_radius, axis=args.peg_axis)
     placement = PlacementConfig(q0=tuple(args.q0) if args.q0 else None)
-    return TaskConfig(urdf=args.urdf, ee_link=args.ee_link, peg=peg, placement=placement)
+    cost = CostConfig(action_weight=args.action_weight)
+    return TaskConfig(urdf=args.urdf, ee_link=args.ee_link, peg=peg, placement=placement, cost=cost)
 
 
 def run(main: Callable[[], None]) -> None:

@@ -96,6 +96,19 @@ def parse_args() -> argparse.Namespace:
         help=f"Adam steps per S-step (default {d.policy.steps})",
     )
     parser.add_argument(
+        "--corrections",
+        type=int,
+        default=d.corrections.rounds,
+        help="policy-correction rounds per S-step: the policy's own states, labelled by the "
+        f"local controllers (0: off) (default {d.corrections.rounds})",
+    )
+    parser.add_argument(
+        "--augment",
+        type=int,
+        default=d.augment,
+        help=f"perturbed copies of each D_g state in the S-step (default {d.augment})",
+    )
+    parser.add_argument(
         "--no-replay", action="store_true", help="distil on the current condition only"
     )
     parser.add_argument("--seed", type=int, default=0)
@@ -122,7 +135,9 @@ def stream_config(args: argparse.Namespace) -> StreamConfig:
         max_iterations=args.max_iterations,
         seed=args.seed,
         local=replace(d.local, samples=args.samples),
+        augment=args.augment,
         policy=replace(d.policy, steps=args.distill_steps, seed=args.seed),
+        corrections=replace(d.corrections, rounds=args.corrections),
     )
 
 

@@ -15,6 +15,7 @@ import torch
 
 from lolgps_torch.data import ConditionSamples, ReplayBuffer
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.types import LinearGaussian
 
 F64 = torch.float64
 
@@ -80,6 +81,25 @@ def test_round_trip_of_two_conditions(tmp_path: Path, two_conditions: tuple) -> 
     with h5py.File(tmp_path / "replay.h5", "r") as f:
         ds = f["condition_000/prec_cur"]
         assert ds.compression == "gzip" and ds.chunks == (1, 5, 2, 2) and ds.dtype == "float64"
+
+
+def test_controllers_round_trip_and_are_optional(tmp_path: Path, two_conditions: tuple) -> None:
+    first, second = two_conditions
+    g = torch.Generator().manual_seed(2)
+    A = torch.randn(5, 2, 2, dtype=F64, generator=g)
+    p_cur = LinearGaussian(
+        torch.randn(5, 2, 4, dtype=F64, generator=g),
+        torch.randn(5, 2, dtype=F64, generator=g),
+        A @ A.mT + torch.eye(2, dtype=F64),
+    )
+    replay = ReplayBuffer(tmp_path / "replay.h5")
+    replay.append_condition(0, (0.0, 0.0), first, iterations=1, p_cur=p_cur)
+    replay.append_condition(1, (0.0, 0.0), second, iterations=1)
+    stored = replay.read_condition(0)
+    assert stored.p_cur is not None and stored.p_pre is None
+    for got, want in zip(stored.p_cur, p_cur, strict=True):
+        assert torch.equal(got, want)
+    assert replay.read_condition(1).p_cur is None
 
 
 def test_a_condition_without_successes_is_stored(tmp_path: Path) -> None:

@@ -40,6 +40,10 @@ def test_ci_stream_distils_and_replays_both_conditions(small_run: Path) -> None:
     out = small_run / "run"
     replay = ReplayBuffer(out / "replay.h5")
     assert replay.conditions() == [0, 1]
+    # each group keeps the condition's final controllers; p_pre once a policy existed
+    first, second = replay.read_condition(0), replay.read_condition(1)
+    assert first.p_cur is not None and first.p_pre is None
+    assert second.p_cur is not None and second.p_pre is not None
     summary = json.loads((out / "summary.json").read_text())["conditions"]
     assert [e["condition"] for e in summary] == [0, 1]
     # learning happened: the first condition's local controller inserts the peg

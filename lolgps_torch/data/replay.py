@@ -7,6 +7,9 @@ File layout: root attributes ``format`` and ``version``; one group per condition
     ``mean_cur [M, T, dU]``, ``prec_cur [M, T, dU, dU]``, ``mean_pre [M, T, dU]``,
     ``prec_pre [M, T, dU, dU]`` (float64, zeros where absent), ``has_pre [M]`` (bool),
 and attributes ``condition`` (index), ``offset`` (hole offset dx, dy in m), ``iterations``.
+The condition's final controllers, which label states the S-step visits later (policy
+corrections), are stored with it when given: ``cur_K [T, dU, dX]``, ``cur_k [T, dU]``,
+``cur_cov [T, dU, dU]`` for p_cur and ``pre_K``, ``pre_k``, ``pre_cov`` for p_pre.
 Datasets are chunked per sample, gzip-compressed and fletcher32-checksummed, in the HDF5 1.10
 file format (whose metadata is checksummed too), so damage is reported on read rather than
 returned as data. A group is written once and never changed.
@@ -30,6 +33,7 @@ from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy.sstep import DistillBatch
+from lolgps_torch.types import LinearGaussian
 
 FORMAT = "lolgps_torch.replay"
 VERSION = 1
@@ -77,6 +81,8 @@ class ConditionRecord(NamedTuple):
     offset: tuple[float, float]
     iterations: int
     samples: ConditionSamples
+    p_cur: LinearGaussian | None = None
+    p_pre: LinearGaussian | None = None
 
 
 def _group_name(index: int) -> str:
@@ -122,6 +128,17 @@ def _stored_conditions(f: h5py.File) -> list[int]:
     # Indexing by name (not f.values(), which yields None for an unreadable object) makes a
     # damaged group raise.
     return sorted(int(f[name].attrs["condition"]) for name in f)
+
+
+def _read_controller(
+    group: h5py.Group, prefix: str, device: torch.device | str
+) -> LinearGaussian | None:
+    """The controller stored as ``<prefix>_K``, ``<prefix>_k``, ``<prefix>_cov``, if any."""
+    if f"{prefix}_K" not in group:
+        return None
+    return LinearGaussian(
+        *(torch.from_numpy(group[f"{prefix}_{key}"][()]).to(device) for key in ("K", "k", "cov"))
+    )
 
 
 def fsync_path(path: Path) -> None:
@@ -178,6 +195,8 @@ class ReplayBuffer:
         offset: tuple[float, float],
         samples: ConditionSamples,
         iterations: int,
+        p_cur: LinearGaussian | None = None,
+        p_pre: LinearGaussian | None = None,
     ) -> None:
         """Add condition ``index`` as a new group, atomically; refuses to overwrite one.
 
@@ -185,10 +204,16 @@ class ReplayBuffer:
         :param offset: hole offset ``(dx, dy)`` of the condition (m).
         :param samples: its successful samples and their targets.
         :param iterations: inner-loop iterations the condition used.
+        :param p_cur: the condition's final local controller (stored when given).
+        :param p_pre: its final linearised global policy (stored when given).
         """
         if index < 0:
             raise LolgpsError(f"condition index must be >= 0, got {index}")
         arrays = _to_numpy(samples)
+        for prefix, controller in (("cur", p_cur), ("pre", p_pre)):
+            if controller is not None:
+                for key, tensor in zip(("K", "k", "cov"), controller, strict=True):
+                    arrays[f"{prefix}_{key}"] = tensor.detach().cpu().to(torch.float64).numpy()
         name = _group_name(index)
         existing = self.path.exists()
         if existing:
@@ -247,12 +272,15 @@ class ReplayBuffer:
         tensors = {
             key: torch.from_numpy(group[key][()]).to(device) for key in ConditionSamples._fields
         }
+        controllers = [_read_controller(group, prefix, device) for prefix in ("cur", "pre")]
         dx, dy = (float(v) for v in group.attrs["offset"])
         return ConditionRecord(
             condition=int(group.attrs["condition"]),
             offset=(dx, dy),
             iterations=int(group.attrs["iterations"]),
             samples=ConditionSamples(**tensors),
+            p_cur=controllers[0],
+            p_pre=controllers[1],
         )
 
     def load(

@@ -61,6 +61,7 @@ class BatchLearner(StreamLearner):
                 self.log(self._iteration_record(m, i, samples, epsilon, eta, kl, (t0, t1, t2, t3)))
             labelled: list[Labelled] = [
                 (
+                    conditions[m],
                     self._with_targets(kept[m], learners[m].p_cur, pres[m]),
                     learners[m].p_cur,
                     pres[m],
@@ -105,5 +106,6 @@ class BatchLearner(StreamLearner):
         self.policy.save(folder)
         _write_json(f"{folder}/entry.json", self.summary[-1])
         for m, offset in enumerate(conditions):
-            self.replay.append_condition(m, offset, labelled[m][0], iterations)
+            _, data, p_cur, p_pre = labelled[m]
+            self.replay.append_condition(m, offset, data, iterations, p_cur, p_pre)
         return self.summary

@@ -22,7 +22,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -31,6 +31,7 @@ from torch import Tensor
 from lolgps_torch.controllers import mix
 from lolgps_torch.data import ConditionSamples, ReplayBuffer
 from lolgps_torch.dynamics import prior_from_config
+from lolgps_torch.lolgps.corrections import CorrectionConfig, Teacher, teacher_reference, visit
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
 from lolgps_torch.policy import (
     DistillBatch,
@@ -61,6 +62,7 @@ class StreamConfig:
         learns their feedback, not only their actions along the successful trajectories.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
+    :param corrections: policy-correction rounds after each S-step's first fit.
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -77,10 +79,11 @@ class StreamConfig:
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
+    corrections: CorrectionConfig = field(default_factory=CorrectionConfig)
 
 
-# a condition's D_g with the controllers that label it (p_cur, p_pre)
-Labelled = tuple[ConditionSamples, LinearGaussian, LinearGaussian | None]
+# a condition's hole offset and D_g with the controllers that label it (p_cur, p_pre)
+Labelled = tuple[tuple[float, float], ConditionSamples, LinearGaussian, LinearGaussian | None]
 
 
 def policy_actor(policy: GaussianPolicy, noise: Tensor | None = None) -> Actor:
@@ -167,7 +170,7 @@ class StreamLearner:
 
         t0 = time.perf_counter()
         data = self._with_targets(kept, learner.p_cur, p_pre)
-        losses = self._distill([(data, learner.p_cur, p_pre)], cfg.seed * 1000 + index)
+        losses = self._distill([(offset, data, learner.p_cur, p_pre)], cfg.seed * 1000 + index)
         t_distill = time.perf_counter() - t0
         local = self._rollout_noiseless(learner.p_cur, offset)
         policy = self._policy_distances([offset])[0]
@@ -196,7 +199,7 @@ class StreamLearner:
         folder = self._checkpoint_dir(index)
         self.policy.save(folder)
         _write_json(os.path.join(folder, "entry.json"), entry)
-        self.replay.append_condition(index, offset, data, iterations)
+        self.replay.append_condition(index, offset, data, iterations, learner.p_cur, p_pre)
         return entry
 
     @staticmethod
@@ -251,31 +254,50 @@ class StreamLearner:
     def _distill(self, current: list[Labelled], seed: int) -> list[float]:
         """S-step on the given conditions' D_g, each with ``augment`` perturbed copies of its
         states labelled by the same linear-Gaussian controllers, plus the earlier conditions'
-        D_g from the replay when it is on."""
-        gen = torch.Generator().manual_seed(seed)
-        batches = []
-        for data, p_cur, p_pre in current:
+        D_g from the replay when it is on; then ``corrections.rounds`` rounds of policy
+        corrections (:mod:`lolgps_torch.lolgps.corrections`) at all those conditions."""
+        cfg, gen = self.config, torch.Generator().manual_seed(seed)
+        batches, teachers = [], []
+        for offset, data, p_cur, p_pre in current:
             batches.append(data.to_batch())
-            if data.x.shape[0] > 1 and self.config.augment > 0:
-                x = data.x
-                spread = (x - x.mean(0)).std(0)  # [T, dX] across this condition's successes
-                noise = torch.randn(self.config.augment, *x.shape, generator=gen, dtype=x.dtype)
-                x_aug = (x + self.config.augment_scale * spread * noise.to(x.device)).flatten(0, 1)
-                aug = ConditionSamples(
-                    x_aug,
-                    x_aug[..., :0],
-                    x_aug[..., 0],
-                    x_aug[:, 0, 0],
-                    *_targets(x_aug, p_cur, p_pre),
-                )
-                batches.append(aug.to_batch())
-        earlier = self.replay.conditions() if self.config.replay else []
-        if earlier:
-            batches.append(self.replay.load(earlier, device=self.task.device))
-        batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
+            if data.x.shape[0] == 0:
+                continue
+            teachers.append(Teacher(offset, p_cur, p_pre, teacher_reference(self.task, data.x)))
+            if data.x.shape[0] > 1 and cfg.augment > 0:
+                batches.append(self._augmented(data, p_cur, p_pre, gen))
+        earlier = self.replay.conditions() if cfg.replay else []
+        for record in (self.replay.read_condition(i, self.task.device) for i in earlier):
+            batches.append(record.samples.to_batch())
+            if record.p_cur is not None and record.samples.x.shape[0] > 0:
+                reference = teacher_reference(self.task, record.samples.x)
+                teachers.append(Teacher(record.offset, record.p_cur, record.p_pre, reference))
+        batch = _concat(batches)
         if batch.x.shape[0] == 0:
             return []
-        return distill(self.policy, batch, self.config.policy, gen)
+        losses = distill(self.policy, batch, cfg.policy, gen)
+        refit = replace(cfg.policy, steps=cfg.corrections.steps)
+        for _ in range(cfg.corrections.rounds if teachers else 0):
+            batch = _concat([batch, visit(self.task, self.policy, teachers, cfg.corrections, gen)])
+            losses += distill(self.policy, batch, refit, gen)
+        return losses
+
+    def _augmented(
+        self,
+        data: ConditionSamples,
+        p_cur: LinearGaussian,
+        p_pre: LinearGaussian | None,
+        gen: torch.Generator,
+    ) -> DistillBatch:
+        """``augment`` copies of D_g's states, each perturbed by ``augment_scale`` times the
+        per-step spread of the condition's successes, labelled by its controllers."""
+        x = data.x
+        spread = (x - x.mean(0)).std(0)  # [T, dX]
+        noise = torch.randn(self.config.augment, *x.shape, generator=gen, dtype=x.dtype)
+        x_aug = (x + self.config.augment_scale * spread * noise.to(x.device)).flatten(0, 1)
+        aug = ConditionSamples(
+            x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0], *_targets(x_aug, p_cur, p_pre)
+        )
+        return aug.to_batch()
 
     def _rollout_noiseless(self, p: LinearGaussian, offset: tuple[float, float]) -> float:
         zero = torch.zeros(
@@ -321,6 +343,10 @@ class StreamLearner:
                 self.summary.append(json.load(fh))
         self.policy = GaussianPolicy.load(self._checkpoint_dir(done - 1), self.task.device)
         return done
+
+
+def _concat(batches: list[DistillBatch]) -> DistillBatch:
+    return DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
 
 
 def _write_json(path: str, data: Any) -> None:
