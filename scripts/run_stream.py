@@ -72,6 +72,20 @@ def parse_args() -> argparse.Namespace:
         f"(trust region) or p_pre (paper eq. 7) (default {d.cstep_anchor})",
     )
     parser.add_argument(
+        "--pre-fit",
+        choices=("gmm", "jacobian"),
+        default=d.pre_fit,
+        help="how p_pre linearises the policy: regression with a GMM prior, or the policy's "
+        f"own Jacobian at the samples (default {d.pre_fit})",
+    )
+    parser.add_argument(
+        "--plan-through-mixture",
+        action=argparse.BooleanOptionalAction,
+        default=d.plan_through_mixture,
+        help="the C-step optimises the acting mixture p_act, not p_cur alone "
+        f"(default {d.plan_through_mixture})",
+    )
+    parser.add_argument(
         "--samples",
         type=int,
         default=d.local.samples,
@@ -129,6 +143,8 @@ def stream_config(args: argparse.Namespace) -> StreamConfig:
         alpha=0.0 if naive else args.alpha,
         alpha_schedule=args.alpha_schedule,
         use_pre=not naive,
+        pre_fit=args.pre_fit,
+        plan_through_mixture=args.plan_through_mixture,
         cstep_anchor=args.cstep_anchor,
         replay=not (naive or args.no_replay),
         success_phases=args.success_phases,

@@ -20,7 +20,6 @@ from lolgps_torch.controllers import mix
 from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.lolgps.local import LocalLearner
 from lolgps_torch.lolgps.stream import Labelled, StreamLearner, _write_json
-from lolgps_torch.policy import linearize_policy
 from lolgps_torch.types import LinearGaussian, Trajectories
 
 
@@ -50,7 +49,7 @@ class BatchLearner(StreamLearner):
                 t1 = time.perf_counter()
                 fit = learner.fit(p_act, samples)
                 if cfg.use_pre and self.policy_trained:
-                    pres[m] = p_pre = linearize_policy(self.policy, samples.x, priors[m])
+                    pres[m] = p_pre = self._linearize(samples.x, priors[m])
                 t2 = time.perf_counter()
                 anchor = p_pre if p_pre is not None and cfg.cstep_anchor == "pre" else learner.p_cur
                 epsilon, eta, kl = learner.improve(fit, anchor)

@@ -23,7 +23,14 @@ from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
-from lolgps_torch.trajopt import CStepConfig, adapt_step_mult, c_step, kl_bound, laplace_cost
+from lolgps_torch.trajopt import (
+    CStepConfig,
+    adapt_step_mult,
+    c_step,
+    kl_bound,
+    laplace_cost,
+    through_mixture,
+)
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost, Trajectories
 
 
@@ -126,10 +133,23 @@ class LocalLearner:
         self.previous = fit
         return fit
 
-    def improve(self, fit: Fit, p_bar: LinearGaussian) -> tuple[float, float, float]:
-        """The C-step against ``p_bar``; returns (epsilon, eta, KL)."""
+    def improve(
+        self,
+        fit: Fit,
+        p_bar: LinearGaussian,
+        mixture: tuple[LinearGaussian, float] | None = None,
+    ) -> tuple[float, float, float]:
+        """The C-step against ``p_bar``; returns (epsilon, eta, KL).
+
+        :param mixture: ``(p_pre, alpha)`` when the samples came from
+            ``p_act = alpha p_pre + (1 - alpha) p_cur``: the C-step then plans p_cur's share of
+            that mixture (:func:`lolgps_torch.trajopt.through_mixture`).
+        """
         epsilon = kl_bound(self.step_mult, self.task.T, self.config.cstep)
-        result = c_step(fit.cost, fit.dynamics, p_bar, epsilon, self.config.cstep)
+        cost, dynamics = fit.cost, fit.dynamics
+        if mixture is not None:
+            cost, dynamics = through_mixture(cost, dynamics, *mixture)
+        result = c_step(cost, dynamics, p_bar, epsilon, self.config.cstep)
         self.p_cur = result.policy
         return epsilon, float(result.eta), float(result.kl.sum())
 

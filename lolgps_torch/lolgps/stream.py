@@ -30,7 +30,7 @@ from torch import Tensor
 
 from lolgps_torch.controllers import mix
 from lolgps_torch.data import ConditionSamples, ReplayBuffer
-from lolgps_torch.dynamics import prior_from_config
+from lolgps_torch.dynamics import GMMPrior, prior_from_config
 from lolgps_torch.lolgps.corrections import CorrectionConfig, Teacher, teacher_reference, visit
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
 from lolgps_torch.policy import (
@@ -39,6 +39,7 @@ from lolgps_torch.policy import (
     PolicyConfig,
     distill,
     linearize_policy,
+    linearize_policy_jacobian,
 )
 from lolgps_torch.sim.rollout import Actor, linear_gaussian_actor
 from lolgps_torch.task import PegTask
@@ -53,6 +54,11 @@ class StreamConfig:
     :param alpha_schedule: ``constant``, or ``dynamic`` (alpha += alpha_step per iteration).
     :param alpha_step: the dynamic schedule's increment (paper: 0.005).
     :param use_pre: linearise the global policy into p_pre (off: naive sequential).
+    :param pre_fit: how p_pre is fitted: ``gmm`` (regression on the policy's actions at the
+        samples with a GMM prior, ALGORITHM.md section 6) or ``jacobian`` (the policy's own
+        derivative at the samples, see :func:`lolgps_torch.policy.linearize_policy_jacobian`).
+    :param plan_through_mixture: the C-step optimises p_act (p_cur's share of the mixture,
+        :mod:`lolgps_torch.trajopt.mixture`) instead of p_cur as if it acted alone.
     :param cstep_anchor: the C-step's p_bar once p_pre exists: ``pre`` (paper eq. 7,
         KL(p_cur || p_pre) <= eps) or ``previous`` (the previous p_cur, a trust region).
     :param replay: distil on the replay of earlier conditions too (off: an ablation).
@@ -70,6 +76,8 @@ class StreamConfig:
     alpha_schedule: str = "dynamic"
     alpha_step: float = 0.005
     use_pre: bool = True
+    pre_fit: str = "gmm"
+    plan_through_mixture: bool = False
     cstep_anchor: str = "previous"
     replay: bool = True
     success_phases: int = 9
@@ -143,10 +151,15 @@ class StreamLearner:
             t1 = time.perf_counter()
             fit = learner.fit(p_act, samples)
             if pre_prior is not None:
-                p_pre = linearize_policy(self.policy, samples.x, pre_prior)
+                p_pre = self._linearize(samples.x, pre_prior)
             t2 = time.perf_counter()
             anchor = p_pre if p_pre is not None and cfg.cstep_anchor == "pre" else learner.p_cur
-            epsilon, eta, kl = learner.improve(fit, anchor)
+            mixture = (
+                (p_pre, alpha)
+                if p_pre is not None and 0.0 < alpha < 1.0 and cfg.plan_through_mixture
+                else None
+            )
+            epsilon, eta, kl = learner.improve(fit, anchor, mixture)
             t3 = time.perf_counter()
             if samples.success.any():
                 first_success = i if first_success is None else first_success
@@ -231,6 +244,12 @@ class StreamLearner:
             "time_fit": t2 - t1,
             "time_cstep": t3 - t2,
         }
+
+    def _linearize(self, x: Tensor, prior: GMMPrior) -> LinearGaussian:
+        """p_pre around the states ``x: [N, T, dX]`` by the configured ``pre_fit``."""
+        if self.config.pre_fit == "jacobian":
+            return linearize_policy_jacobian(self.policy, x)
+        return linearize_policy(self.policy, x, prior)
 
     @property
     def policy_trained(self) -> bool:
