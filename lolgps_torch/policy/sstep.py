@@ -179,8 +179,7 @@ def distill(
     policy.set_variance(optimal_variance(batch))
     with torch.no_grad():
         constants = _row_constants(policy.covariance(), batch)  # [M]
-    # fused: one kernel per parameter update, about a third of the step time saved on CPU
-    optimiser = torch.optim.Adam(policy.net.parameters(), lr=config.learning_rate, fused=True)
+    optimiser = torch.optim.Adam(policy.net.parameters(), lr=config.learning_rate)
     # cosine decay to 5% of the rate: large early steps, a settled fit at the end
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
         optimiser, T_max=config.steps, eta_min=0.05 * config.learning_rate
