@@ -17,7 +17,9 @@ from collections import defaultdict
 from typing import Any
 
 from lolgps_torch.cli import run
+from lolgps_torch.cost.l12 import CostConfig
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.lolgps.stream import StreamConfig
 
 
 def _load(path: str) -> dict[str, Any]:
@@ -38,12 +40,29 @@ def _mean_sd(values: list[float]) -> str:
 
 
 def label(folder: str) -> str:
-    """The method, with its alpha setting for LOLGPS (ablations share the method name)."""
+    """The method, with its alpha setting for LOLGPS and every setting that differs from the
+    defaults (ablations share the method name)."""
     config = _load(os.path.join(folder, "config.json"))
-    if config["method"] != "lolgps":
-        return str(config["method"])
-    stream = config["stream"]
-    return f"lolgps (alpha {stream['alpha']:g} {stream['alpha_schedule']})"
+    stream, cost, d = config["stream"], config["task"]["cost"], StreamConfig()
+    settings = {  # name: (this run's value, the default); older runs lack the newer keys
+        "pre_fit": (stream.get("pre_fit", d.pre_fit), d.pre_fit),
+        "plan_through_mixture": (
+            stream.get("plan_through_mixture", d.plan_through_mixture),
+            d.plan_through_mixture,
+        ),
+        "augment": (stream.get("augment", d.augment), d.augment),
+        "corrections": (
+            stream.get("corrections", {}).get("rounds", d.corrections.rounds),
+            d.corrections.rounds,
+        ),
+        "action_weight": (cost.get("action_weight"), CostConfig().action_weight),
+        "distill_steps": (stream["policy"]["steps"], d.policy.steps),
+    }
+    extras = [f"{name} {value}" for name, (value, default) in settings.items() if value != default]
+    method = str(config["method"])
+    if method == "lolgps":
+        extras.insert(0, f"alpha {stream['alpha']:g} {stream['alpha_schedule']}")
+    return f"{method} ({', '.join(extras)})" if extras else method
 
 
 def training_table(runs: list[str]) -> None:

@@ -104,3 +104,27 @@ def test_existing_run_without_resume_is_refused(small_run: Path) -> None:
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1].startswith("error: ")
     assert "--resume" in proc.stderr
+
+
+def test_redistill_refits_and_tests_a_finished_run(small_run: Path, tmp_path: Path) -> None:
+    out = tmp_path / "refit"
+    cmd = [sys.executable, "scripts/redistill.py", "--run", str(small_run / "run")]
+    proc = subprocess.run(
+        [*cmd, "--steps", "50", "--out", str(out)], capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert lines[0].startswith("fitted ") and lines[-1].startswith("training positions ")
+    assert sum(line.startswith("condition ") for line in lines) == 2
+    assert GaussianPolicy.load(out).trained
+    bad = subprocess.run([*cmd, "--steps", "0"], capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and bad.stderr.strip().startswith("error: ")
+
+
+def test_compare_pre_fit_prints_both_linearisations(small_run: Path) -> None:
+    cmd = [sys.executable, "scripts/compare_pre_fit.py", "--run", str(small_run / "run")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert lines[0].startswith("policy after condition 1 at condition 0")
+    assert [line.split(":")[0].split()[-1] for line in lines[1:]] == ["gmm", "jacobian"]
