@@ -5,7 +5,8 @@ positions with one worker (in this process) and with several spawned workers.
                                  [--repeats 3] [--checkpoint DIR]
 
 Times are end to end, as ``evaluate_run`` spends them: building the task (and starting the
-extra processes, each of which imports torch and builds its own task) plus the rollouts.
+extra processes, each of which imports torch and builds its worlds) plus the rollouts and
+their scoring.
 Medians over ``repeats``, the two settings interleaved so drifting load hits both alike; the
 speed-up is ``t_1 / t_workers``. On a shared machine compare the ratio, not the seconds.
 """

@@ -6,8 +6,11 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
+import multiprocessing.spawn
 import runpy
+import subprocess
 import sys
+import types
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -24,7 +27,7 @@ from lolgps_torch.evaluation.areas import (
     default_training_stream,
     sample_area_positions,
 )
-from lolgps_torch.evaluation.evaluate import EVAL_FILE, evaluate_run, format_table
+from lolgps_torch.evaluation.evaluate import EVAL_FILE, evaluate_run, format_table, run_jobs
 from lolgps_torch.evaluation.metrics import (
     aggregate,
     average_final_success,
@@ -37,8 +40,9 @@ from lolgps_torch.evaluation.metrics import (
     wilson_interval,
 )
 from lolgps_torch.evaluation.plot import plot_fig4
+from lolgps_torch.evaluation.worker import Job, RolloutSetup, run_worker
 from lolgps_torch.policy.net import GaussianPolicy
-from lolgps_torch.task import TaskConfig
+from lolgps_torch.task import PegTask, TaskConfig
 
 KUKA = "robots/kuka_peg.urdf"
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "evaluate.py"
@@ -242,7 +246,7 @@ def test_evaluation_is_identical_for_one_and_two_workers(
     areas = AreaConfig(n_areas=2, positions_per_area=2)
     one = evaluate_run(run, workers=1, areas=areas, batch_size=3, scratch=run)
     # this process claims no job, so the spawned worker runs them all
-    monkeypatch.setattr(evaluate_module, "_next_job", lambda counter, n_jobs: None)
+    monkeypatch.setattr(evaluate_module, "next_job", lambda counter, n_jobs: None)
     two = evaluate_run(run, workers=2, areas=areas, batch_size=3)
     written = json.loads((run / EVAL_FILE).read_text())
     assert [s["per_position"] for s in one["stages"]] == [s["per_position"] for s in two["stages"]]
@@ -305,12 +309,63 @@ def test_script_prints_one_error_line(
     assert len(err) == 1 and err[0].startswith("error: ")
 
 
+def test_scores_equal_those_of_the_task_itself(tmp_path: Path) -> None:
+    """Rollouts in a worker's worlds, scored by the main process, give what PegTask.sample
+    gives for the same policy and positions."""
+    policy = GaussianPolicy(26, 7)
+    policy.save(tmp_path)
+    positions = ((0.0, 0.0), (0.01, -0.02))
+    config = TaskConfig(urdf=KUKA)
+    [result] = run_jobs(asdict(config), [Job(str(tmp_path), positions)], 1, 2)
+    task = PegTask(config, n_worlds=2)
+    try:
+        with torch.no_grad():
+            samples = task.sample(lambda t, x, rows: policy(x), list(positions))
+    finally:
+        task.close()
+    assert result.final_distance == samples.final_distance.tolist()
+    assert result.total_cost == samples.cost.sum(dim=1).tolist()
+    assert result.success == samples.success.tolist()
+
+
 def test_a_worker_error_reaches_the_caller(tmp_path: Path) -> None:
     """The worker loop run in this process: its error crosses the queue to the collector."""
     GaussianPolicy(20, 7).save(tmp_path)  # a state size the task does not have
-    jobs = [evaluate_module.Job(str(tmp_path), ((0.0, 0.0),))]
+    jobs = [Job(str(tmp_path), ((0.0, 0.0),))]
+    task = PegTask(TaskConfig(urdf=KUKA), n_worlds=1)
+    setup = RolloutSetup(
+        task.arm, task.config.world, task.geometry.nominal_mouth, task.geometry.q0, 1
+    )
+    task.close()
     context = multiprocessing.get_context("spawn")
-    counter, results = context.Value("q", 0), context.Queue()
-    evaluate_module._worker(asdict(TaskConfig(urdf=KUKA)), 1, jobs, counter, results)
+    counter, setups, results = context.Value("q", 0), context.Queue(), context.Queue()
+    setups.put(setup)
+    run_worker(setups, jobs, counter, results)
     with pytest.raises(LolgpsError, match="policy maps 20 -> 7 dims"):
-        evaluate_module._collect(results, {0}, [])
+        list(evaluate_module._collect(results, {0}, []))
+
+
+def test_the_worker_imports_neither_kinematics_nor_urdf_parsing() -> None:
+    """A spawned worker imports its module and what that imports: none of the slow packages
+    that only building the task needs."""
+    code = (
+        "import sys, lolgps_torch.evaluation.worker; "
+        "print(sorted({m.split('.')[0] for m in sys.modules} "
+        "& {'pytorch_kinematics', 'yourdfpy', 'trimesh'}))"
+    )
+    output = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout
+    assert output.strip() == "[]"
+
+
+def test_spawned_workers_do_not_rerun_the_main_script(monkeypatch: pytest.MonkeyPatch) -> None:
+    """multiprocessing would re-run a script started as ``python script.py`` in each worker."""
+    main = types.ModuleType("__main__")
+    main.__file__ = str(SCRIPT)
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    assert "init_main_from_path" in multiprocessing.spawn.get_preparation_data("worker")
+    with evaluate_module._main_script_hidden():
+        hidden = multiprocessing.spawn.get_preparation_data("worker")
+    assert "init_main_from_path" not in hidden and "init_main_from_name" not in hidden
+    assert main.__file__ == str(SCRIPT) and main.__spec__ is None

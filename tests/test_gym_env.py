@@ -25,6 +25,6 @@ def test_env_episode_is_truncated_and_rewards_are_costs() -> None:
         rewards.append(reward)
         steps += 1
     assert steps == 100
-    assert all(r < 0 for r in rewards)
+    assert all(float(r) < 0 for r in rewards)
     assert info["tip_distance"] > 0.06 and not info["success"]  # holding the start pose
     env.close()

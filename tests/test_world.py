@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 
 import numpy as np
 import pybullet_data
@@ -24,7 +25,7 @@ XARM = os.path.join(pybullet_data.getDataPath(), "xarm/xarm6_robot.urdf")
 
 
 @pytest.fixture(scope="module")
-def task() -> PegTask:
+def task() -> Iterator[PegTask]:
     t = PegTask(TaskConfig(urdf=KUKA), n_worlds=2)
     yield t
     t.close()

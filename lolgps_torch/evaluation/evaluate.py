@@ -10,23 +10,25 @@ follow.
 Rollouts are cut into fixed batches of ``batch_size`` positions, stage by stage, and the
 batches are shared between this process and spawned workers. Each batch always holds the same
 positions and a rollout does not depend on what its world ran before, so the results do not
-depend on the number of workers. A PyBullet client cannot be pickled: each worker builds its own
-:class:`PegTask` and loads the checkpoints itself; only plain data crosses processes.
+depend on the number of workers. Only plain data crosses processes: this process builds the
+:class:`PegTask` and scores every rollout; a worker (:mod:`lolgps_torch.evaluation.worker`)
+receives the task's arm, world settings and placement, builds its own worlds (a PyBullet client
+cannot be pickled), loads the checkpoints and returns states, actions and final distances.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import multiprocessing
 import multiprocessing.queues
 import os
 import queue
-import traceback
-from collections.abc import Sequence
+import sys
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
 from multiprocessing.process import BaseProcess
-from multiprocessing.sharedctypes import Synchronized
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -42,6 +44,16 @@ from lolgps_torch.evaluation.metrics import (
     forward_transfer,
     mean_defined,
 )
+from lolgps_torch.evaluation.worker import (
+    Failure,
+    Job,
+    PolicyRoller,
+    Position,
+    Rollouts,
+    RolloutSetup,
+    next_job,
+    run_worker,
+)
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.task import PegTask, task_config_from_dict
 
@@ -50,25 +62,16 @@ SUMMARY_FILE = "summary.json"
 EVAL_FILE = "eval.json"
 CHECKPOINT_DIR = "checkpoints"
 
-Position = tuple[float, float]
-
 
 @dataclass(frozen=True)
 class RunInfo:
     """What the evaluation reads from a run's ``config.json``."""
 
-    task: dict[str, Any]  # dataclasses.asdict(TaskConfig): plain data for the workers
+    task: dict[str, Any]  # dataclasses.asdict(TaskConfig)
     conditions: list[Position]
     stages: list[dict[str, Any]]
     method: str
     seed: int
-
-
-class Job(NamedTuple):
-    """One batch of rollouts: a checkpoint folder and the hole offsets to run it at."""
-
-    checkpoint: str
-    positions: tuple[Position, ...]
 
 
 class JobResult(NamedTuple):
@@ -131,141 +134,130 @@ def stage_checkpoints(run_dir: str | Path, info: RunInfo) -> list[tuple[int, Pat
     return found
 
 
-class PolicyRoller:
-    """Noiseless rollouts of checkpointed global policies in this process's own worlds.
-
-    :param task: ``dataclasses.asdict`` of the run's :class:`TaskConfig`.
-    :param n_worlds: worlds stepped in lockstep (the batch size).
-    """
-
-    def __init__(self, task: dict[str, Any], n_worlds: int) -> None:
-        self.task = PegTask(task_config_from_dict(task), n_worlds=n_worlds)
-        self.policies: dict[str, GaussianPolicy] = {}
-
-    def policy(self, checkpoint: str) -> GaussianPolicy:
-        if checkpoint not in self.policies:
-            policy = GaussianPolicy.load(checkpoint)
-            layout = self.task.layout
-            if (policy.dX, policy.dU) != (layout.dX, layout.dU):
-                raise LolgpsError(
-                    f"{checkpoint}: policy maps {policy.dX} -> {policy.dU} dims, the run's task "
-                    f"has states of {layout.dX} and actions of {layout.dU}"
-                )
-            self.policies[checkpoint] = policy.eval()
-        return self.policies[checkpoint]
-
-    def __call__(self, job: Job) -> JobResult:
-        policy = self.policy(job.checkpoint)
-
-        def act(t: int, x: torch.Tensor, rows: slice) -> torch.Tensor:
-            return policy(x)
-
-        with torch.no_grad():
-            samples = self.task.sample(act, list(job.positions))
-        return JobResult(
-            samples.final_distance.tolist(),
-            samples.cost.sum(dim=1).tolist(),
-            samples.success.tolist(),
-        )
-
-    def close(self) -> None:
-        self.task.close()
+def _score(task: PegTask, job: Job, rollouts: Rollouts) -> JobResult:
+    """Per position of ``job``: final tip distance, total cost ``sum_t l(x_t, u_t)`` and
+    success, computed from ``rollouts`` exactly as :meth:`PegTask.sample` does."""
+    x, u = torch.from_numpy(rollouts.x), torch.from_numpy(rollouts.u)
+    final = torch.from_numpy(rollouts.final_distance)
+    with torch.no_grad():
+        cost = task.cost.evaluate(x, u, task.targets(job.positions)[:, None])
+    success = final < task.config.world.success_threshold
+    return JobResult(final.tolist(), cost.sum(dim=1).tolist(), success.tolist())
 
 
-class _Failure(NamedTuple):
-    """A worker's exception, as plain data: a user error's message or a bug's traceback."""
-
-    user_error: bool
-    message: str
-
-
-def _next_job(counter: Synchronized[int], n_jobs: int) -> int | None:
-    """Claim the next unclaimed job index from the shared counter (None: all claimed)."""
-    with counter.get_lock():
-        index = counter.value
-        counter.value += 1
-    return index if index < n_jobs else None
+def _unpack(item: tuple[int, Rollouts | Failure]) -> tuple[int, Rollouts]:
+    """A worker's ``(job index, rollouts)``; its failure raised here (a user error as one
+    :class:`LolgpsError` line, a bug as a :class:`RuntimeError` with its traceback)."""
+    index, result = item
+    if isinstance(result, Failure):
+        if result.user_error:
+            raise LolgpsError(result.message)
+        raise RuntimeError(f"an evaluation worker failed:\n{result.message}")
+    return index, result
 
 
-def _worker(
-    task: dict[str, Any],
-    n_worlds: int,
-    jobs: list[Job],
-    counter: Synchronized[int],
-    results: multiprocessing.queues.Queue[tuple[int, JobResult | _Failure]],
-) -> None:
-    """A worker process: build its own task, then run jobs until all are claimed."""
-    torch.set_num_threads(1)
-    try:
-        roller = PolicyRoller(task, n_worlds)
-        while (index := _next_job(counter, len(jobs))) is not None:
-            results.put((index, roller(jobs[index])))
-    except LolgpsError as error:
-        results.put((-1, _Failure(True, str(error))))
-    except Exception:  # a bug: its traceback goes to the parent, which raises it
-        results.put((-1, _Failure(False, traceback.format_exc())))
+def _ready(
+    results: multiprocessing.queues.Queue[tuple[int, Rollouts | Failure]],
+) -> Iterator[tuple[int, Rollouts]]:
+    """The workers' results already queued, without waiting for more."""
+    while True:
+        try:
+            item = results.get_nowait()
+        except queue.Empty:
+            return
+        yield _unpack(item)
 
 
 def _collect(
-    results: multiprocessing.queues.Queue[tuple[int, JobResult | _Failure]],
+    results: multiprocessing.queues.Queue[tuple[int, Rollouts | Failure]],
     missing: set[int],
     processes: Sequence[BaseProcess],
-) -> dict[int, JobResult]:
-    """The workers' results for the job indices ``missing``."""
-    found: dict[int, JobResult] = {}
+) -> Iterator[tuple[int, Rollouts]]:
+    """The workers' results for the job indices ``missing``, as they arrive; raises
+    :class:`LolgpsError` if every worker has died with some still missing."""
     while missing:
         try:
-            index, result = results.get(timeout=0.5)
+            item = results.get(timeout=0.5)
         except queue.Empty:
             if not any(p.is_alive() for p in processes) and results.empty():
                 codes = [p.exitcode for p in processes]
                 raise LolgpsError(f"evaluation workers died (exit codes {codes})") from None
             continue
-        if isinstance(result, _Failure):
-            if result.user_error:
-                raise LolgpsError(result.message)
-            raise RuntimeError(f"an evaluation worker failed:\n{result.message}")
-        found[index] = result
+        index, rollouts = _unpack(item)
         missing.discard(index)
-    return found
+        yield index, rollouts
+
+
+@contextlib.contextmanager
+def _main_script_hidden() -> Iterator[None]:
+    """Hide the ``__main__`` module's file and spec while workers are spawned, so they do not
+    re-run the main script. multiprocessing re-runs it in each spawned process, for pickled
+    references into it; the workers need none (their target and data come from this package),
+    and a script that imports this module would cost each worker pytorch_kinematics and
+    yourdfpy's start-up, about a second."""
+    main = sys.modules["__main__"]
+    spec, path = main.__spec__, main.__dict__.pop("__file__", None)
+    main.__spec__ = None
+    try:
+        yield
+    finally:
+        main.__spec__ = spec
+        if path is not None:
+            main.__file__ = path
 
 
 def run_jobs(
     task: dict[str, Any], jobs: Sequence[Job], workers: int, n_worlds: int
 ) -> list[JobResult]:
     """Results of ``jobs``, in order, from ``workers`` processes: this one and ``workers - 1``
-    spawned ones, all on one torch thread, each claiming the next unclaimed job. This process
-    starts at once and does not wait for the others' start-up (each imports torch and builds
-    its own task: about 6 CPU-seconds, as much as 350 rollouts), but on busy cores that
-    start-up competes with it, so extra workers pay off only for long evaluations."""
+    spawned ones, all on one torch thread, each claiming the next unclaimed job.
+
+    This process starts the workers, builds the task from ``task`` (``dataclasses.asdict`` of
+    a :class:`TaskConfig`) with ``n_worlds`` worlds, sends the workers its arm, world settings
+    and placement (:class:`RolloutSetup`), then rolls out jobs itself at once. The workers only
+    build worlds and run policies (start-up: 2-3 CPU-seconds, mostly importing torch; the
+    task's inverse kinematics and cost are not theirs) and send back states, actions and final
+    distances. This process scores every rollout with the task's cost as :meth:`PegTask.sample`
+    does (the workers' as they arrive, between its own jobs), so the results do not depend on
+    ``workers``."""
     if workers < 1:
         raise LolgpsError(f"need at least one worker, got {workers}")
     context = multiprocessing.get_context("spawn")
     counter = context.Value("q", 0)
-    results: multiprocessing.queues.Queue[tuple[int, JobResult | _Failure]] = context.Queue()
+    setups: multiprocessing.queues.Queue[RolloutSetup] = context.Queue()
+    results: multiprocessing.queues.Queue[tuple[int, Rollouts | Failure]] = context.Queue()
     processes = [
-        context.Process(target=_worker, args=(task, n_worlds, list(jobs), counter, results))
+        context.Process(target=run_worker, args=(setups, list(jobs), counter, results))
         for _ in range(min(workers, len(jobs)) - 1)
     ]
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    roller = None
+    peg = None
     try:
-        for process in processes:
-            process.start()
-        roller = PolicyRoller(task, n_worlds)
-        local: dict[int, JobResult] = {}
-        while (index := _next_job(counter, len(jobs))) is not None:
-            local[index] = roller(jobs[index])
-        missing = set(range(len(jobs))) - set(local)
-        found = {**local, **_collect(results, missing, processes)}
+        with _main_script_hidden():
+            for process in processes:
+                process.start()  # the workers import while this process builds the task
+        peg = PegTask(task_config_from_dict(task), n_worlds=n_worlds)
+        setup = RolloutSetup(
+            peg.arm, peg.config.world, peg.geometry.nominal_mouth, peg.geometry.q0, n_worlds
+        )
+        for _ in processes:
+            setups.put(setup)
+        roller = PolicyRoller(peg.sampler, peg.layout)
+        found: dict[int, JobResult] = {}
+        while (index := next_job(counter, len(jobs))) is not None:
+            found[index] = _score(peg, jobs[index], roller(jobs[index]))
+            for i, rollouts in _ready(results):
+                found[i] = _score(peg, jobs[i], rollouts)
+        for i, rollouts in _collect(results, set(range(len(jobs))) - set(found), processes):
+            found[i] = _score(peg, jobs[i], rollouts)
         return [found[i] for i in range(len(jobs))]
     finally:
         for process in processes:
             process.terminate()  # those still starting up when every job was taken
             process.join()
-        if roller is not None:
-            roller.close()
+        if peg is not None:
+            peg.close()
         torch.set_num_threads(threads)
 
 

@@ -1,5 +1,8 @@
 """What the method needs to know about a URDF arm, read once with yourdfpy.
 
+yourdfpy (and trimesh, which it imports) is imported only when a URDF is parsed, so processes
+that merely receive an :class:`ArmSpec` (the evaluation's workers) do not pay for it.
+
 An :class:`ArmSpec` is the single description that drives both PyBullet (joint names are
 mapped to body joint indices) and pytorch-kinematics (the serial chain to the point
 frame), so the two cannot disagree.
@@ -22,10 +25,12 @@ import os
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass
-
-import yourdfpy
+from typing import TYPE_CHECKING
 
 from lolgps_torch.errors import LolgpsError
+
+if TYPE_CHECKING:
+    import yourdfpy
 
 CARRIED_PEG_TIP = "peg_tip"
 ATTACHED_PEG = "lolgps_peg"
@@ -168,6 +173,8 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
 
 def _parse(path: str) -> tuple[bytes, ET.Element, yourdfpy.URDF]:
     """The file's bytes, its XML tree and yourdfpy's model; one-line errors for bad files."""
+    import yourdfpy  # here, not at the top: see the module docstring
+
     if not os.path.isfile(path):
         raise LolgpsError(f"URDF not found: {path}")
     with open(path, "rb") as fh:

@@ -1,0 +1,137 @@
+"""The rollout side of the evaluation: noiseless rollouts of checkpointed global policies.
+
+The main process builds the full :class:`~lolgps_torch.task.PegTask` and scores every rollout;
+a spawned worker only steps physics and runs the policy. It receives the main task's arm,
+world settings and geometry as plain data (:class:`RolloutSetup`), builds its own worlds (a
+PyBullet client cannot be pickled) and returns states, actions and final tip distances. So
+that its start-up stays short, this module imports neither pytorch_kinematics nor
+yourdfpy/trimesh, directly or through the modules it uses.
+"""
+
+from __future__ import annotations
+
+import multiprocessing.queues
+import traceback
+from dataclasses import dataclass
+from multiprocessing.sharedctypes import Synchronized
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.policy.net import GaussianPolicy
+from lolgps_torch.sim.arm import ArmSpec
+from lolgps_torch.sim.rollout import Sampler
+from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.state import StateLayout
+
+Position = tuple[float, float]
+
+
+class Job(NamedTuple):
+    """One batch of rollouts: a checkpoint folder and the hole offsets to run it at."""
+
+    checkpoint: str
+    positions: tuple[Position, ...]
+
+
+class Rollouts(NamedTuple):
+    """The rollouts of a :class:`Job`, one per position, as float64 arrays: states x
+    ``[N, T, dX]``, actions u ``[N, T, dU]`` and final tip distances ``[N]`` (m)."""
+
+    x: np.ndarray
+    u: np.ndarray
+    final_distance: np.ndarray
+
+
+class Failure(NamedTuple):
+    """A worker's exception, as plain data: a user error's message or a bug's traceback."""
+
+    user_error: bool
+    message: str
+
+
+@dataclass(frozen=True)
+class RolloutSetup:
+    """What a worker needs to build worlds identical to the main task's.
+
+    :param arm: the task's arm (``PegTask.arm``).
+    :param world: simulation and hole settings (``TaskConfig.world``).
+    :param nominal_mouth: the nominal hole mouth (m) from the task's placement.
+    :param q0: the start pose (rad) from the task's placement.
+    :param n_worlds: worlds stepped in lockstep (the batch size).
+    """
+
+    arm: ArmSpec
+    world: WorldConfig
+    nominal_mouth: tuple[float, float, float]
+    q0: tuple[float, ...]
+    n_worlds: int
+
+    def sampler(self) -> Sampler:
+        """A new pool of ``n_worlds`` worlds in this process."""
+        return Sampler(self.arm, self.world, self.nominal_mouth, self.q0, self.n_worlds)
+
+
+class PolicyRoller:
+    """Noiseless rollouts (``u_t = mu_theta(x_t)``) of checkpointed global policies in the
+    worlds of ``sampler``, whose states and actions are laid out by ``layout``. The sampler
+    stays its owner's to close."""
+
+    def __init__(self, sampler: Sampler, layout: StateLayout) -> None:
+        self.sampler = sampler
+        self.layout = layout
+        self.policies: dict[str, GaussianPolicy] = {}
+
+    def policy(self, checkpoint: str) -> GaussianPolicy:
+        """The policy saved in ``checkpoint`` (loaded once), checked against the state layout."""
+        if checkpoint not in self.policies:
+            policy = GaussianPolicy.load(checkpoint)
+            if (policy.dX, policy.dU) != (self.layout.dX, self.layout.dU):
+                raise LolgpsError(
+                    f"{checkpoint}: policy maps {policy.dX} -> {policy.dU} dims, the run's task "
+                    f"has states of {self.layout.dX} and actions of {self.layout.dU}"
+                )
+            self.policies[checkpoint] = policy.eval()
+        return self.policies[checkpoint]
+
+    def __call__(self, job: Job) -> Rollouts:
+        """One rollout per position of ``job``."""
+        policy = self.policy(job.checkpoint)
+
+        def act(t: int, x: torch.Tensor, rows: slice) -> torch.Tensor:
+            return policy(x)
+
+        with torch.no_grad():
+            x, u, final = self.sampler.rollout(act, list(job.positions))
+        return Rollouts(x.numpy(), u.numpy(), final.numpy())
+
+
+def next_job(counter: Synchronized[int], n_jobs: int) -> int | None:
+    """Claim the next unclaimed job index from the shared counter (None: all claimed)."""
+    with counter.get_lock():
+        index = counter.value
+        counter.value += 1
+    return index if index < n_jobs else None
+
+
+def run_worker(
+    setups: multiprocessing.queues.Queue[RolloutSetup],
+    jobs: list[Job],
+    counter: Synchronized[int],
+    results: multiprocessing.queues.Queue[tuple[int, Rollouts | Failure]],
+) -> None:
+    """A worker process: wait for the main process's :class:`RolloutSetup`, build its worlds,
+    then run jobs until all are claimed, putting ``(job index, rollouts)`` on ``results``; an
+    exception ends it as ``(-1, Failure)``."""
+    torch.set_num_threads(1)
+    try:
+        setup = setups.get()
+        roller = PolicyRoller(setup.sampler(), StateLayout(setup.arm.dof))
+        while (index := next_job(counter, len(jobs))) is not None:
+            results.put((index, roller(jobs[index])))
+    except LolgpsError as error:
+        results.put((-1, Failure(True, str(error))))
+    except Exception:  # a bug: its traceback goes to the parent, which raises it
+        results.put((-1, Failure(False, traceback.format_exc())))
