@@ -46,6 +46,7 @@ def label(folder: str) -> str:
     stream, cost, d = config["stream"], config["task"]["cost"], StreamConfig()
     settings = {  # name: (this run's value, the default); older runs lack the newer keys
         "pre_fit": (stream.get("pre_fit", d.pre_fit), d.pre_fit),
+        "cstep_anchor": (stream["cstep_anchor"], d.cstep_anchor),
         "plan_through_mixture": (
             stream.get("plan_through_mixture", d.plan_through_mixture),
             d.plan_through_mixture,
