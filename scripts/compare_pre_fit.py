@@ -22,8 +22,12 @@ from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import checkpoint_dir, read_run
 from lolgps_torch.lolgps.local import LocalConfig
-from lolgps_torch.lolgps.stream import policy_actor
-from lolgps_torch.policy import GaussianPolicy, linearize_policy, linearize_policy_jacobian
+from lolgps_torch.policy import (
+    GaussianPolicy,
+    linearize_policy,
+    linearize_policy_jacobian,
+    policy_actor,
+)
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask, task_config_from_dict
 

@@ -24,8 +24,7 @@ from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import read_run
-from lolgps_torch.lolgps.stream import policy_actor
-from lolgps_torch.policy import DistillBatch, GaussianPolicy, PolicyConfig, distill
+from lolgps_torch.policy import DistillBatch, GaussianPolicy, PolicyConfig, distill, policy_actor
 from lolgps_torch.task import PegTask, task_config_from_dict
 
 

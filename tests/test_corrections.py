@@ -9,8 +9,7 @@ import pytest
 import torch
 
 from lolgps_torch.lolgps.corrections import CorrectionConfig, Teacher, teacher_reference, visit
-from lolgps_torch.lolgps.stream import policy_actor
-from lolgps_torch.policy import GaussianPolicy
+from lolgps_torch.policy import GaussianPolicy, policy_actor
 from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.types import LinearGaussian
 

@@ -23,8 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from lolgps_torch.policy import DistillBatch, GaussianPolicy
-from lolgps_torch.sim.rollout import Actor
+from lolgps_torch.policy import DistillBatch, GaussianPolicy, policy_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import LinearGaussian
 
@@ -63,17 +62,6 @@ def teacher_reference(task: PegTask, x: Tensor) -> Tensor:
     return x[..., task.layout.points].mean(0)
 
 
-def _noisy_policy(policy: GaussianPolicy, noise: Tensor) -> Actor:
-    """``u = mu_theta(x) + chol(Sigma_pi) eps`` for pre-drawn ``eps: [R, T, dU]``."""
-    L = torch.linalg.cholesky(policy.covariance()).detach()
-
-    def act(t: int, x: Tensor, rows: slice) -> Tensor:
-        with torch.no_grad():
-            return policy(x) + noise[rows, t] @ L.T
-
-    return act
-
-
 def visit(
     task: PegTask,
     policy: GaussianPolicy,
@@ -91,7 +79,7 @@ def visit(
     offsets = [teacher.offset for teacher in teachers for _ in range(R)]
     eps = torch.randn(len(offsets), T, dU, generator=generator, dtype=torch.float64)
     eps[::R] = 0.0
-    x = task.sample(_noisy_policy(policy, eps.to(task.device)), offsets).x  # [C R, T, dX]
+    x = task.sample(policy_actor(policy, eps.to(task.device)), offsets).x  # [C R, T, dX]
     x = x.reshape(len(teachers), R, T, -1)
     rows: list[DistillBatch] = []
     for teacher, xs in zip(teachers, x, strict=True):

@@ -40,8 +40,9 @@ from lolgps_torch.policy import (
     distill,
     linearize_policy,
     linearize_policy_jacobian,
+    policy_actor,
 )
-from lolgps_torch.sim.rollout import Actor, linear_gaussian_actor
+from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import LinearGaussian, Trajectories
 
@@ -92,19 +93,6 @@ class StreamConfig:
 
 # a condition's hole offset and D_g with the controllers that label it (p_cur, p_pre)
 Labelled = tuple[tuple[float, float], ConditionSamples, LinearGaussian, LinearGaussian | None]
-
-
-def policy_actor(policy: GaussianPolicy, noise: Tensor | None = None) -> Actor:
-    """The global policy: its mean action, plus ``chol(Sigma_pi) eps_t`` when given noise
-    ``eps: [N, T, dU]``."""
-    L = torch.linalg.cholesky(policy.covariance()).detach()
-
-    def act(t: int, x: Tensor, rows: slice) -> Tensor:
-        with torch.no_grad():
-            u = policy(x)
-        return u if noise is None else u + noise[rows, t] @ L.T
-
-    return act
 
 
 def controller_targets(p: LinearGaussian, x: Tensor) -> tuple[Tensor, Tensor]:

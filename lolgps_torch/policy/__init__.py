@@ -1,6 +1,7 @@
 """The global policy (ALGORITHM.md sections 6-7): the net, its linearisation ``p_pre`` and the
 S-step."""
 
+from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.linearize import linearize_policy, linearize_policy_jacobian
 from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
 from lolgps_torch.policy.sstep import DistillBatch, distill, kl_loss, optimal_variance
@@ -14,4 +15,5 @@ __all__ = [
     "linearize_policy",
     "linearize_policy_jacobian",
     "optimal_variance",
+    "policy_actor",
 ]
