@@ -117,6 +117,13 @@ def parse_args() -> argparse.Namespace:
         f"local controllers (0: off) (default {d.corrections.rounds})",
     )
     parser.add_argument(
+        "--consolidate",
+        type=int,
+        default=d.consolidate,
+        help="MDGPS iterations after each condition's S-step, the C-step anchored to the "
+        f"updated policy, each followed by a short S-step (default {d.consolidate})",
+    )
+    parser.add_argument(
         "--augment",
         type=int,
         default=d.augment,
@@ -152,6 +159,7 @@ def stream_config(args: argparse.Namespace) -> StreamConfig:
         seed=args.seed,
         local=replace(d.local, samples=args.samples),
         augment=args.augment,
+        consolidate=args.consolidate,
         policy=replace(d.policy, steps=args.distill_steps, seed=args.seed),
         corrections=replace(d.corrections, rounds=args.corrections),
     )

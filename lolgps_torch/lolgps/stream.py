@@ -69,6 +69,11 @@ class StreamConfig:
         learns their feedback, not only their actions along the successful trajectories.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
+    :param consolidate: MDGPS iterations after the condition's S-step: sample p_cur, C-step
+        against the policy now trained on this condition (``KL(p_cur || p_pre) <= eps``), add
+        the successes to D_g and distil again, so the local controller moves towards what the
+        policy can represent.
+    :param consolidate_steps: Adam steps of each consolidation S-step.
     :param corrections: policy-correction rounds after each S-step's first fit.
     :param seed: seeds every condition's sampling and every S-step.
     """
@@ -85,6 +90,8 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
+    consolidate: int = 0
+    consolidate_steps: int = 1000
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -173,6 +180,27 @@ class StreamLearner:
         data = self._with_targets(kept, learner.p_cur, p_pre)
         losses = self._distill([(offset, data, learner.p_cur, p_pre)], cfg.seed * 1000 + index)
         t_distill = time.perf_counter() - t0
+        if cfg.use_pre and cfg.consolidate > 0:
+            prior = pre_prior if pre_prior is not None else prior_from_config(cfg.local.dynamics)
+            for j in range(cfg.consolidate):
+                t0 = time.perf_counter()
+                samples = learner.sample(learner.p_cur)
+                t1 = time.perf_counter()
+                fit = learner.fit(learner.p_cur, samples)
+                p_pre = self._linearize(samples.x, prior)
+                t2 = time.perf_counter()
+                epsilon, eta, kl = learner.improve(fit, p_pre)
+                t3 = time.perf_counter()
+                if samples.success.any():
+                    kept.append(Trajectories(*(f[samples.success] for f in samples)))
+                record = (samples, epsilon, eta, kl, (t0, t1, t2, t3))
+                self.log(self._iteration_record(index, iterations, *record))
+                iterations += 1
+                data = self._with_targets(kept, learner.p_cur, p_pre)
+                seed = (cfg.seed * 1000 + index) * 100 + j + 1
+                losses = self._distill(
+                    [(offset, data, learner.p_cur, p_pre)], seed, cfg.consolidate_steps
+                )
         local = self._rollout_noiseless(learner.p_cur, offset)
         policy = self._policy_distances([offset])[0]
         threshold = task.config.world.success_threshold
@@ -258,7 +286,7 @@ class StreamLearner:
         mean_cur, prec_cur, mean_pre, prec_pre, has_pre = _targets(x, p_cur, p_pre)
         return ConditionSamples(x, u, cost, final, mean_cur, prec_cur, mean_pre, prec_pre, has_pre)
 
-    def _distill(self, current: list[Labelled], seed: int) -> list[float]:
+    def _distill(self, current: list[Labelled], seed: int, steps: int | None = None) -> list[float]:
         """S-step on the given conditions' D_g, each with ``augment`` perturbed copies of its
         states labelled by the same linear-Gaussian controllers, plus the earlier conditions'
         D_g from the replay when it is on; then ``corrections.rounds`` rounds of policy
@@ -281,7 +309,8 @@ class StreamLearner:
         batch = _concat(batches)
         if batch.x.shape[0] == 0:
             return []
-        losses = distill(self.policy, batch, cfg.policy, gen)
+        first = cfg.policy if steps is None else replace(cfg.policy, steps=steps)
+        losses = distill(self.policy, batch, first, gen)
         refit = replace(cfg.policy, steps=cfg.corrections.steps)
         for _ in range(cfg.corrections.rounds if teachers else 0):
             batch = _concat([batch, visit(self.task, self.policy, teachers, cfg.corrections, gen)])
