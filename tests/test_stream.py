@@ -128,3 +128,19 @@ def test_compare_pre_fit_prints_both_linearisations(small_run: Path) -> None:
     lines = proc.stdout.strip().splitlines()
     assert lines[0].startswith("policy after condition 1 at condition 0")
     assert [line.split(":")[0].split()[-1] for line in lines[1:]] == ["gmm", "jacobian"]
+
+
+def test_consolidation_adds_iterations_anchored_to_the_policy(tmp_path: Path) -> None:
+    proc = _stream(tmp_path, "consolidated", "--consolidate", "1", "--pre-fit", "jacobian")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = tmp_path / "consolidated"
+    summary = json.loads((out / "summary.json").read_text())["conditions"]
+    records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    for entry in summary:
+        steps = [
+            r for r in records if r.get("condition") == entry["condition"] and "iteration" in r
+        ]
+        # the inner loop's iterations, then one consolidation iteration, numbered on
+        assert [r["iteration"] for r in steps] == list(range(entry["iterations"]))
+        assert entry["iterations"] >= 2
+    assert ReplayBuffer(out / "replay.h5").conditions() == [0, 1]
