@@ -92,7 +92,14 @@ class PegTask:
 
     def sample(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
         """One rollout per offset, scored by the cost."""
-        x, u, final = self.sampler.rollout(act, offsets)
+        return self.score(*self.sampler.rollout(act, offsets), offsets)
+
+    def score(
+        self, x: Tensor, u: Tensor, final: Tensor, offsets: Sequence[tuple[float, float]]
+    ) -> Trajectories:
+        """Rollouts ``x: [N, T, dX]``, ``u: [N, T, dU]`` with final tip distances ``[N]`` at the
+        hole ``offsets``, with their per-step cost ``l(x_t, u_t)`` and success
+        (``final < success_threshold``)."""
         cost = self.cost.evaluate(x, u, self.targets(offsets)[:, None])
         success = final < self.config.world.success_threshold
         return Trajectories(x, u, cost, final, success)

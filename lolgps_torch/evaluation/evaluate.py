@@ -136,13 +136,13 @@ def stage_checkpoints(run_dir: str | Path, info: RunInfo) -> list[tuple[int, Pat
 
 def _score(task: PegTask, job: Job, rollouts: Rollouts) -> JobResult:
     """Per position of ``job``: final tip distance, total cost ``sum_t l(x_t, u_t)`` and
-    success, computed from ``rollouts`` exactly as :meth:`PegTask.sample` does."""
-    x, u = torch.from_numpy(rollouts.x), torch.from_numpy(rollouts.u)
-    final = torch.from_numpy(rollouts.final_distance)
+    success, by :meth:`PegTask.score`."""
+    x, u, final = (torch.from_numpy(a) for a in rollouts)
     with torch.no_grad():
-        cost = task.cost.evaluate(x, u, task.targets(job.positions)[:, None])
-    success = final < task.config.world.success_threshold
-    return JobResult(final.tolist(), cost.sum(dim=1).tolist(), success.tolist())
+        scored = task.score(x, u, final, job.positions)
+    return JobResult(
+        scored.final_distance.tolist(), scored.cost.sum(dim=1).tolist(), scored.success.tolist()
+    )
 
 
 def _unpack(item: tuple[int, Rollouts | Failure]) -> tuple[int, Rollouts]:

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.sim.arm import ArmSpec
 from lolgps_torch.sim.rollout import Sampler
@@ -98,13 +99,8 @@ class PolicyRoller:
 
     def __call__(self, job: Job) -> Rollouts:
         """One rollout per position of ``job``."""
-        policy = self.policy(job.checkpoint)
-
-        def act(t: int, x: torch.Tensor, rows: slice) -> torch.Tensor:
-            return policy(x)
-
-        with torch.no_grad():
-            x, u, final = self.sampler.rollout(act, list(job.positions))
+        actor = policy_actor(self.policy(job.checkpoint))
+        x, u, final = self.sampler.rollout(actor, list(job.positions))
         return Rollouts(x.numpy(), u.numpy(), final.numpy())
 
 
