@@ -141,36 +141,12 @@ class StreamLearner:
         for i in range(cfg.max_iterations):
             iterations = i + 1
             p_act = learner.p_cur if p_pre is None else mix(p_pre, learner.p_cur, alpha)
-            t0 = time.perf_counter()
-            samples = learner.sample(p_act)
-            t1 = time.perf_counter()
-            fit = learner.fit(p_act, samples)
-            if pre_prior is not None:
-                p_pre = self._linearize(samples.x, pre_prior)
-            t2 = time.perf_counter()
-            anchor = p_pre if p_pre is not None and cfg.cstep_anchor == "pre" else learner.p_cur
-            mixture = (
-                (p_pre, alpha)
-                if p_pre is not None and 0.0 < alpha < 1.0 and cfg.plan_through_mixture
-                else None
+            samples, p_pre = self._step(
+                index, i, learner, p_act, pre_prior, cfg.cstep_anchor == "pre", alpha
             )
-            epsilon, eta, kl = learner.improve(fit, anchor, mixture)
-            t3 = time.perf_counter()
             if samples.success.any():
                 first_success = i if first_success is None else first_success
                 kept.append(Trajectories(*(f[samples.success] for f in samples)))
-            self.log(
-                self._iteration_record(
-                    index,
-                    i,
-                    samples,
-                    epsilon,
-                    eta,
-                    kl,
-                    (t0, t1, t2, t3),
-                    alpha if p_pre is not None else 0.0,
-                )
-            )
             if cfg.alpha_schedule == "dynamic":
                 alpha = min(1.0, alpha + cfg.alpha_step)
             if len(kept) >= cfg.success_phases:
@@ -183,18 +159,9 @@ class StreamLearner:
         if cfg.use_pre and cfg.consolidate > 0:
             prior = pre_prior if pre_prior is not None else prior_from_config(cfg.local.dynamics)
             for j in range(cfg.consolidate):
-                t0 = time.perf_counter()
-                samples = learner.sample(learner.p_cur)
-                t1 = time.perf_counter()
-                fit = learner.fit(learner.p_cur, samples)
-                p_pre = self._linearize(samples.x, prior)
-                t2 = time.perf_counter()
-                epsilon, eta, kl = learner.improve(fit, p_pre)
-                t3 = time.perf_counter()
+                samples, p_pre = self._step(index, iterations, learner, learner.p_cur, prior, True)
                 if samples.success.any():
                     kept.append(Trajectories(*(f[samples.success] for f in samples)))
-                record = (samples, epsilon, eta, kl, (t0, t1, t2, t3))
-                self.log(self._iteration_record(index, iterations, *record))
                 iterations += 1
                 data = self._with_targets(kept, learner.p_cur, p_pre)
                 seed = (cfg.seed * 1000 + index) * 100 + j + 1
@@ -230,6 +197,40 @@ class StreamLearner:
         _write_json(os.path.join(folder, "entry.json"), entry)
         self.replay.append_condition(index, offset, data, iterations, learner.p_cur, p_pre)
         return entry
+
+    def _step(
+        self,
+        index: int,
+        iteration: int,
+        learner: LocalLearner,
+        p_act: LinearGaussian,
+        prior: GMMPrior | None,
+        anchor_to_pre: bool,
+        alpha: float = 0.0,
+    ) -> tuple[Trajectories, LinearGaussian | None]:
+        """One iteration at condition ``index``: sample ``p_act`` (which mixes in p_pre with
+        weight ``alpha``), fit the dynamics, linearise the policy into the new p_pre (when a
+        ``prior`` is given, i.e. the policy is trained) and take the C-step against it
+        (``anchor_to_pre``) or against the previous p_cur; logs the iteration's record.
+        Returns the samples and the new p_pre."""
+        t0 = time.perf_counter()
+        samples = learner.sample(p_act)
+        t1 = time.perf_counter()
+        fit = learner.fit(p_act, samples)
+        p_pre = self._linearize(samples.x, prior) if prior is not None else None
+        t2 = time.perf_counter()
+        anchor = p_pre if p_pre is not None and anchor_to_pre else learner.p_cur
+        mixture = (
+            (p_pre, alpha)
+            if p_pre is not None and 0.0 < alpha < 1.0 and self.config.plan_through_mixture
+            else None
+        )
+        epsilon, eta, kl = learner.improve(fit, anchor, mixture)
+        t3 = time.perf_counter()
+        mixed = alpha if p_pre is not None else 0.0
+        times = (t0, t1, t2, t3)
+        self.log(self._iteration_record(index, iteration, samples, epsilon, eta, kl, times, mixed))
+        return samples, p_pre
 
     @staticmethod
     def _iteration_record(
