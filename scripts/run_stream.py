@@ -124,6 +124,14 @@ def parse_args() -> argparse.Namespace:
         f"updated policy, each followed by a short S-step (default {d.consolidate})",
     )
     parser.add_argument(
+        "--refits",
+        type=int,
+        default=d.refits,
+        help="checked refits of each S-step while the policy misses a learnt condition, kept "
+        "only when its noiseless rollouts there improve; also guards --consolidate "
+        f"(default {d.refits})",
+    )
+    parser.add_argument(
         "--augment",
         type=int,
         default=d.augment,
@@ -160,6 +168,7 @@ def stream_config(args: argparse.Namespace) -> StreamConfig:
         local=replace(d.local, samples=args.samples),
         augment=args.augment,
         consolidate=args.consolidate,
+        refits=args.refits,
         policy=replace(d.policy, steps=args.distill_steps, seed=args.seed),
         corrections=replace(d.corrections, rounds=args.corrections),
     )
@@ -226,6 +235,22 @@ def main() -> None:
             metrics.flush()
             if record.get("event") == "distilled":
                 print(f"S-step took {record['time_distill']:.1f}s", flush=True)
+                return
+            if record.get("event") == "refit":
+                verdict = "kept" if record["kept"] else "undone"
+                print(
+                    f"condition {record['condition'] + 1}/{total}  refit {record['round'] + 1}: "
+                    f"policy succeeds at {record['successes']}/{record['of']} learnt "
+                    f"conditions, {verdict}",
+                    flush=True,
+                )
+                return
+            if record.get("event") == "consolidation undone":
+                print(
+                    f"condition {record['condition'] + 1}/{total}  consolidation round "
+                    f"{record['round'] + 1} did not improve the policy: undone",
+                    flush=True,
+                )
                 return
             print(
                 f"condition {record['condition'] + 1}/{total}  iter {record['iteration']:2d}  "

@@ -67,6 +67,7 @@ def test_round_trip_of_two_conditions(tmp_path: Path, two_conditions: tuple) -> 
     replay.append_condition(0, (0.02, -0.02), first, iterations=7)
     replay.append_condition(1, (0.1, 0.0), second, iterations=4)
     assert replay.conditions() == [0, 1]
+    assert replay.offsets() == [(0.02, -0.02), (0.1, 0.0)]
     record = replay.read_condition(1)
     assert (record.condition, record.offset, record.iterations) == (1, (0.1, 0.0), 4)
     assert_samples_equal(record.samples, second)

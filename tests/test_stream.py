@@ -144,3 +144,20 @@ def test_consolidation_adds_iterations_anchored_to_the_policy(tmp_path: Path) ->
         assert [r["iteration"] for r in steps] == list(range(entry["iterations"]))
         assert entry["iterations"] >= 2
     assert ReplayBuffer(out / "replay.h5").conditions() == [0, 1]
+
+
+def test_checked_refits_guard_the_consolidation(tmp_path: Path) -> None:
+    extra = ["--refits", "1", "--consolidate", "2", "--pre-fit", "jacobian"]
+    proc = _stream(tmp_path, "guarded", *extra)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = tmp_path / "guarded"
+    records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    for condition in (0, 1):
+        mine = [r for r in records if r.get("condition") == condition]
+        for r in mine:
+            if r.get("event") == "refit":
+                assert 0 <= r["successes"] <= r["of"] == condition + 1
+        undone = [i for i, r in enumerate(mine) if r.get("event") == "consolidation undone"]
+        if undone:  # an undone round ends the consolidation: no iteration after it
+            assert not any("iteration" in r for r in mine[undone[0] :])
+    assert ReplayBuffer(out / "replay.h5").conditions() == [0, 1]

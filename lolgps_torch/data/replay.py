@@ -189,6 +189,16 @@ class ReplayBuffer:
         with self._open() as f:
             return _stored_conditions(f)
 
+    def offsets(self) -> list[tuple[float, float]]:
+        """The stored conditions' hole offsets ``(dx, dy)`` (m), in condition order."""
+        if not self.path.exists():
+            return []
+        with self._open() as f:
+            return [
+                (float(dx), float(dy))
+                for dx, dy in (f[_group_name(i)].attrs["offset"] for i in _stored_conditions(f))
+            ]
+
     def append_condition(
         self,
         index: int,

@@ -75,6 +75,13 @@ class StreamConfig:
         policy can represent.
     :param consolidate_steps: Adam steps of each consolidation S-step.
     :param corrections: policy-correction rounds after each S-step's first fit.
+    :param refits: checked refits of the condition's S-step. The policy runs noiselessly at
+        every condition it has learnt (the earlier ones only with the replay); while it misses
+        one, it is refitted from the best weights so far (``refit_steps`` Adam steps, a fresh
+        minibatch draw) and the refit is kept only if it succeeds at more of them (ties: a
+        lower mean final distance). Consolidation iterations pass the same check, and the first
+        that does not improve is undone and ends the consolidation.
+    :param refit_steps: Adam steps of each refit.
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -92,6 +99,8 @@ class StreamConfig:
     max_iterations: int = 25
     consolidate: int = 0
     consolidate_steps: int = 1000
+    refits: int = 0
+    refit_steps: int = 1000
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -154,11 +163,19 @@ class StreamLearner:
 
         t0 = time.perf_counter()
         data = self._with_targets(kept, learner.p_cur, p_pre)
-        losses = self._distill([(offset, data, learner.p_cur, p_pre)], cfg.seed * 1000 + index)
+        seed = cfg.seed * 1000 + index
+        current: list[Labelled] = [(offset, data, learner.p_cur, p_pre)]
+        losses = self._distill(current, seed)
+        check = [offset] + (self.replay.offsets() if cfg.replay else [])
+        best = None
+        if cfg.refits > 0:
+            best, refit_losses = self._refit(index, current, check, seed)
+            losses = refit_losses if refit_losses is not None else losses
         t_distill = time.perf_counter() - t0
         if cfg.use_pre and cfg.consolidate > 0:
             prior = pre_prior if pre_prior is not None else prior_from_config(cfg.local.dynamics)
             for j in range(cfg.consolidate):
+                before = (data, p_pre, learner.p_cur, losses, self._snapshot())
                 samples, p_pre = self._step(index, iterations, learner, learner.p_cur, prior, True)
                 if samples.success.any():
                     kept.append(Trajectories(*(f[samples.success] for f in samples)))
@@ -168,6 +185,15 @@ class StreamLearner:
                 losses = self._distill(
                     [(offset, data, learner.p_cur, p_pre)], seed, cfg.consolidate_steps
                 )
+                if best is None:
+                    continue
+                score = self._score(check)
+                if score <= best:
+                    data, p_pre, learner.p_cur, losses, state = before
+                    self.policy.load_state_dict(state)
+                    self.log({"condition": index, "event": "consolidation undone", "round": j})
+                    break
+                best = score
         local = self._rollout_noiseless(learner.p_cur, offset)
         policy = self._policy_distances([offset])[0]
         threshold = task.config.world.success_threshold
@@ -317,6 +343,36 @@ class StreamLearner:
             batch = _concat([batch, visit(self.task, self.policy, teachers, cfg.corrections, gen)])
             losses += distill(self.policy, batch, refit, gen)
         return losses
+
+    def _score(self, offsets: list[tuple[float, float]]) -> tuple[int, float]:
+        """The policy's noiseless rollouts at ``offsets``: (successes, minus the mean final
+        distance), so that larger is better."""
+        final = torch.tensor(self._policy_distances(offsets))
+        threshold = self.task.config.world.success_threshold
+        return int((final < threshold).sum()), -float(final.mean())
+
+    def _snapshot(self) -> dict[str, Tensor]:
+        return {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
+
+    def _refit(
+        self, index: int, current: list[Labelled], offsets: list[tuple[float, float]], seed: int
+    ) -> tuple[tuple[int, float], list[float] | None]:
+        """Up to ``refits`` S-step refits at condition ``index`` from the best weights so far,
+        while the policy misses one of ``offsets``; keeps the best by :meth:`_score`. Returns
+        its score and the losses of the refit that produced it (None: the first fit stayed)."""
+        best, state, kept = self._score(offsets), self._snapshot(), None
+        for r in range(self.config.refits):
+            if best[0] == len(offsets):
+                break
+            losses = self._distill(current, seed * 100 + 50 + r, self.config.refit_steps)
+            score = self._score(offsets)
+            record = {"condition": index, "event": "refit", "round": r, "successes": score[0]}
+            self.log({**record, "of": len(offsets), "kept": score > best})
+            if score > best:
+                best, state, kept = score, self._snapshot(), losses
+            else:
+                self.policy.load_state_dict(state)
+        return best, kept
 
     def _augmented(
         self,

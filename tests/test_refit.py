@@ -1,0 +1,56 @@
+"""The checked refits of the S-step: keep the best policy by its rollouts, undo the rest."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from lolgps_torch.lolgps.stream import StreamConfig, StreamLearner
+from lolgps_torch.policy import GaussianPolicy
+
+
+def _first_weight(policy: GaussianPolicy) -> float:
+    return float(next(policy.net.parameters()).detach()[0, 0])
+
+
+def test_refits_keep_the_best_policy_and_stop_once_all_succeed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    learner = StreamLearner.__new__(StreamLearner)  # no task: scoring and fitting are scripted
+    learner.config = StreamConfig(refits=5, refit_steps=7)
+    learner.policy = GaussianPolicy(3, 2)
+    records: list[dict[str, object]] = []
+    learner.log = records.append
+    w0 = _first_weight(learner.policy)
+    # the initial fit, then one score per refit: better, worse, all three conditions solved
+    scores = iter([(1, -0.3), (2, -0.2), (1, -0.1), (3, -0.05)])
+    starts: list[tuple[float, int | None]] = []
+
+    def fit(current: list[object], seed: int, steps: int | None = None) -> list[float]:
+        starts.append((_first_weight(learner.policy) - w0, steps))
+        with torch.no_grad():
+            for p in learner.policy.net.parameters():
+                p.add_(1.0)
+        return [float(len(starts))]
+
+    monkeypatch.setattr(learner, "_distill", fit)
+    monkeypatch.setattr(learner, "_score", lambda offsets: next(scores))
+    offsets = [(0.0, 0.0), (0.1, 0.0), (0.2, 0.0)]
+    best, losses = learner._refit(4, [], offsets, seed=3)
+
+    assert best == (3, -0.05) and losses == [3.0]  # the losses of the fit that was kept
+    # each refit starts from the best weights so far: the worse second one was undone
+    assert starts == [(0.0, 7), (1.0, 7), (1.0, 7)]
+    assert _first_weight(learner.policy) - w0 == pytest.approx(2.0)
+    assert [r["kept"] for r in records] == [True, False, True]
+    assert all(r["condition"] == 4 and r["of"] == 3 for r in records)
+
+
+def test_no_refit_when_the_policy_already_succeeds(monkeypatch: pytest.MonkeyPatch) -> None:
+    learner = StreamLearner.__new__(StreamLearner)
+    learner.config = StreamConfig(refits=3)
+    learner.policy = GaussianPolicy(3, 2)
+    learner.log = lambda record: pytest.fail(f"unexpected refit {record}")
+    monkeypatch.setattr(learner, "_distill", lambda *a, **k: pytest.fail("unexpected fit"))
+    monkeypatch.setattr(learner, "_score", lambda offsets: (len(offsets), -0.001))
+    assert learner._refit(0, [], [(0.0, 0.0)], seed=0) == ((1, -0.001), None)
