@@ -59,6 +59,7 @@ def label(folder: str) -> str:
         "action_weight": (cost.get("action_weight"), CostConfig().action_weight),
         "distill_steps": (stream["policy"]["steps"], d.policy.steps),
         "consolidate": (stream.get("consolidate", d.consolidate), d.consolidate),
+        "refits": (stream.get("refits", d.refits), d.refits),
     }
     extras = [f"{name} {value}" for name, (value, default) in settings.items() if value != default]
     method = str(config["method"])
