@@ -121,6 +121,26 @@ def test_redistill_refits_and_tests_a_finished_run(small_run: Path, tmp_path: Pa
     assert bad.returncode == 2 and bad.stderr.strip().startswith("error: ")
 
 
+def test_trace_policy_prints_rollout_and_fit_per_condition(small_run: Path) -> None:
+    cmd = [sys.executable, "scripts/trace_policy.py", "--run", str(small_run / "run")]
+    proc = subprocess.run([*cmd, "--steps", "0", "5"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert lines[0] == "policy after condition 1; columns: steps [0, 5]"
+    assert [line.split()[1] for line in lines[1::2]] == ["0", "1"]
+    # the rollout starts at the start pose, whose tip error at step 0 is the same for both
+    # conditions up to the hole offsets (0, 0) and (0.01, -0.01): 10 mm apart in x and y
+    x0, y0 = (float(v) for v in lines[1].split("mm (")[1].split(",")[:2])
+    x1, y1 = (float(v) for v in lines[3].split("mm (")[1].split(",")[:2])
+    assert (x0 - x1, y0 - y1) == pytest.approx((10.0, -10.0), abs=1.0)
+    assert all(line.strip().startswith("D_g fit: ") for line in lines[2::2])
+    bad = subprocess.run([*cmd, "--steps", "100"], capture_output=True, text=True, timeout=300)
+    assert (
+        bad.returncode == 2
+        and bad.stderr.strip() == "error: --steps must lie in [0, 100), got [100]"
+    )
+
+
 def test_compare_pre_fit_prints_both_linearisations(small_run: Path) -> None:
     cmd = [sys.executable, "scripts/compare_pre_fit.py", "--run", str(small_run / "run")]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
