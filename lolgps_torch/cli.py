@@ -57,13 +57,32 @@ def add_task_arguments(parser: argparse.ArgumentParser, default_urdf: str | None
         default=cost.action_weight,
         help="torque cost wu_j = action_weight / effort_j^2 (default %(default)s)",
     )
+    group.add_argument(
+        "--descent-height",
+        type=float,
+        default=cost.descent_height,
+        help="lift the cost's targets by this height (m) at t = 0, falling linearly to 0 at "
+        "--descent-steps, so the peg aligns over the hole before it goes down (default %(default)s: off)",
+    )
+    group.add_argument(
+        "--descent-steps",
+        type=int,
+        default=cost.descent_steps,
+        help="step at which the lifted targets reach the hole floor (default %(default)s: off)",
+    )
 
 
 def task_config(args: argparse.Namespace) -> TaskConfig:
     """The :class:`TaskConfig` the arm flags describe."""
     peg = PegConfig(length=args.peg_length, radius=args.peg_radius, axis=args.peg_axis)
     placement = PlacementConfig(q0=tuple(args.q0) if args.q0 else None)
-    cost = CostConfig(action_weight=args.action_weight)
+    if args.descent_height < 0.0 or args.descent_steps < 0:
+        raise LolgpsError("--descent-height and --descent-steps must be >= 0")
+    cost = CostConfig(
+        action_weight=args.action_weight,
+        descent_height=args.descent_height,
+        descent_steps=args.descent_steps,
+    )
     return TaskConfig(urdf=args.urdf, ee_link=args.ee_link, peg=peg, placement=placement, cost=cost)
 
 

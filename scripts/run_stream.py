@@ -110,6 +110,13 @@ def parse_args() -> argparse.Namespace:
         help=f"Adam steps per S-step (default {d.policy.steps})",
     )
     parser.add_argument(
+        "--pre-weight",
+        type=float,
+        default=d.policy.pre_weight,
+        help="weight lambda of KL(pi || p_pre) in the S-step loss, KL(pi || p_cur) + "
+        f"lambda KL(pi || p_pre) (paper eq. 8: 1; default {d.policy.pre_weight:g})",
+    )
+    parser.add_argument(
         "--corrections",
         type=int,
         default=d.corrections.rounds,
@@ -154,6 +161,8 @@ def parse_args() -> argparse.Namespace:
 def stream_config(args: argparse.Namespace) -> StreamConfig:
     d = StreamConfig()
     naive = args.method == "naive"
+    if args.pre_weight < 0.0:
+        raise LolgpsError(f"--pre-weight {args.pre_weight}: must be >= 0")
     return StreamConfig(
         alpha=0.0 if naive else args.alpha,
         alpha_schedule=args.alpha_schedule,
@@ -169,7 +178,9 @@ def stream_config(args: argparse.Namespace) -> StreamConfig:
         augment=args.augment,
         consolidate=args.consolidate,
         refits=args.refits,
-        policy=replace(d.policy, steps=args.distill_steps, seed=args.seed),
+        policy=replace(
+            d.policy, steps=args.distill_steps, seed=args.seed, pre_weight=args.pre_weight
+        ),
         corrections=replace(d.corrections, rounds=args.corrections),
     )
 

@@ -58,6 +58,9 @@ def label(folder: str) -> str:
         ),
         "action_weight": (cost.get("action_weight"), CostConfig().action_weight),
         "distill_steps": (stream["policy"]["steps"], d.policy.steps),
+        "pre_weight": (stream["policy"].get("pre_weight", 1.0), d.policy.pre_weight),
+        "descent_height": (cost.get("descent_height", 0.0), CostConfig().descent_height),
+        "descent_steps": (cost.get("descent_steps", 0), CostConfig().descent_steps),
         "consolidate": (stream.get("consolidate", d.consolidate), d.consolidate),
         "refits": (stream.get("refits", d.refits), d.refits),
     }

@@ -44,14 +44,17 @@ def random_batch(M: int, dX: int, dU: int, seed: int) -> DistillBatch:
     )
 
 
-def reference_loss(mean: torch.Tensor, cov: torch.Tensor, batch: DistillBatch) -> torch.Tensor:
-    """Mean over rows of KL(pi || p_cur) + has_pre KL(pi || p_pre), by torch.distributions."""
+def reference_loss(
+    mean: torch.Tensor, cov: torch.Tensor, batch: DistillBatch, pre_weight: float = 1.0
+) -> torch.Tensor:
+    """Mean over rows of KL(pi || p_cur) + lambda has_pre KL(pi || p_pre), by
+    torch.distributions."""
     pi = MultivariateNormal(mean, covariance_matrix=cov.expand(batch.M, -1, -1))
     cur = kl_divergence(pi, MultivariateNormal(batch.mean_cur, precision_matrix=batch.prec_cur))
     rows = batch.has_pre
     pi_pre = MultivariateNormal(mean[rows], covariance_matrix=cov.expand(int(rows.sum()), -1, -1))
     p_pre = MultivariateNormal(batch.mean_pre[rows], precision_matrix=batch.prec_pre[rows])
-    return (cur.sum() + kl_divergence(pi_pre, p_pre).sum()) / batch.M
+    return (cur.sum() + pre_weight * kl_divergence(pi_pre, p_pre).sum()) / batch.M
 
 
 def test_kl_loss_matches_torch_distributions() -> None:
@@ -81,19 +84,30 @@ def test_kl_loss_full_policy_covariance() -> None:
     assert torch.allclose(kl_loss(mean, cov, batch), reference_loss(mean, cov, batch), rtol=1e-12)
 
 
-def test_optimal_variance_minimises_the_loss() -> None:
+@pytest.mark.parametrize("pre_weight", [0.0, 0.3, 1.0])
+def test_weighted_pre_term_matches_torch_distributions(pre_weight: float) -> None:
+    g = torch.Generator().manual_seed(6)
+    batch = random_batch(M=30, dX=3, dU=3, seed=7)
+    mean = torch.randn(30, 3, dtype=F64, generator=g)
+    cov = random_spd(3, generator=g)
+    got = kl_loss(mean, cov, batch, pre_weight)
+    assert torch.allclose(got, reference_loss(mean, cov, batch, pre_weight), rtol=1e-12)
+
+
+@pytest.mark.parametrize("pre_weight", [0.0, 0.3, 1.0])
+def test_optimal_variance_minimises_the_loss(pre_weight: float) -> None:
     batch = random_batch(M=200, dX=3, dU=3, seed=4)
     mean = torch.randn(200, 3, dtype=F64, generator=torch.Generator().manual_seed(5))
-    variance = optimal_variance(batch)
-    best = kl_loss(mean, torch.diag(variance), batch)
+    variance = optimal_variance(batch, pre_weight)
+    best = kl_loss(mean, torch.diag(variance), batch, pre_weight)
     for i in range(3):
         for factor in (0.97, 1.03):
             perturbed = variance.clone()
             perturbed[i] *= factor
-            assert kl_loss(mean, torch.diag(perturbed), batch) > best + 1e-6
+            assert kl_loss(mean, torch.diag(perturbed), batch, pre_weight) > best + 1e-6
     # Stationary: the gradient of the loss in the variance vanishes there.
     v = variance.clone().requires_grad_(True)
-    (grad,) = torch.autograd.grad(kl_loss(mean, torch.diag(v), batch), v)
+    (grad,) = torch.autograd.grad(kl_loss(mean, torch.diag(v), batch, pre_weight), v)
     assert grad.abs().max() < 1e-12
 
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from lolgps_torch.cost.kinematics import PegKinematics
-from lolgps_torch.cost.l12 import to_quadratic
+from lolgps_torch.cost.l12 import CostConfig, PegCost, to_quadratic
 from lolgps_torch.sim.arm import load_arm
 from lolgps_torch.sim.placement import solve_ik
 from lolgps_torch.sim.rollout import linear_gaussian_actor
@@ -101,6 +101,33 @@ def test_cost_gradient_and_gauss_newton_hessian(task: PegTask) -> None:
     value = 0.5 * torch.einsum("ti,tij,tj->t", y1, quad1.C, y1) + (quad1.c * y1).sum(-1) + quad1.cc
     assert torch.allclose(value, e1.value[0])
     assert quad.C.shape == (T, dX + dU, dX + dU)
+
+
+def test_descent_schedule_lifts_the_targets(task: PegTask) -> None:
+    """With h_0 = 0.2 and t_d = 4 the cost is the plain cost with both targets raised by
+    0.2, 0.15, 0.1, 0.05, 0, 0 m at steps 0-5, and its expansion is still the exact gradient."""
+    lifted_cost = PegCost(
+        CostConfig(descent_height=0.2, descent_steps=4),
+        task.kinematics,
+        task.layout,
+        torch.tensor(task.arm.effort),
+    )
+    gen = torch.Generator().manual_seed(3)
+    N, T, dX, dU = 2, 6, task.layout.dX, task.layout.dU
+    x = torch.zeros(N, T, dX, dtype=torch.float64)
+    x[..., task.layout.q] = task.q0 + 0.2 * torch.randn(N, T, 7, dtype=torch.float64, generator=gen)
+    u = torch.randn(N, T, dU, dtype=torch.float64, generator=gen)
+    targets = task.targets([(0.01, -0.02)])[0]
+    per_step = targets.expand(T, 2, 3).clone()
+    per_step[..., 2] += torch.tensor([0.2, 0.15, 0.1, 0.05, 0.0, 0.0], dtype=torch.float64)[:, None]
+    expected = task.cost.evaluate(x, u, per_step)
+    assert torch.allclose(lifted_cost.evaluate(x, u, targets), expected, rtol=1e-12)
+    assert not torch.allclose(task.cost.evaluate(x, u, targets), expected)
+    e = lifted_cost.expand(x, u, targets)
+    y = torch.cat([x, u], -1).requires_grad_(True)
+    total = lifted_cost.evaluate(y[..., :dX], y[..., dX:], targets).sum()
+    (grad,) = torch.autograd.grad(total, y)
+    assert torch.allclose(torch.cat([e.lx, e.lu], -1), grad, atol=1e-8)
 
 
 def test_state_points_agree_with_kinematics(task: PegTask) -> None:

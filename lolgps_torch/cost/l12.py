@@ -2,12 +2,16 @@
 
     l(x_t, u_t) = 1/2 sum_j wu_j u_j^2  +  m_t * l12(z_t),
     l12(z)      = 1/2 l2 |z|^2 + l1 sqrt(gamma + |z|^2),
-    z_t         = A (p(q_t) - p*),
+    z_t         = A (p(q_t) - p*_t),     p*_t = p* + h_t e_z,   h_t = h_0 max(0, 1 - t / t_d),
 
 where p(q) stacks the tip and top points (6), p* their targets, and A (8 x 6) holds
 sqrt(per-axis point weights) on its first six rows and sqrt(tilt weight) times the lateral
 offset between tip and top on the last two.  m_t is 1, or ``final_multiplier`` at t = T-1.
 wu_j = action_weight / effort_j^2, so the action cost is in units of the effort limits.
+
+The optional descent schedule (h_0 = ``descent_height``, t_d = ``descent_steps``; off when
+either is 0) lifts both targets by h_t, so the optimal trajectory first aligns over the hole and
+then lowers the peg at a steady rate instead of diving at it.  The state keeps p - p*.
 
 The expansion is Gauss-Newton through forward kinematics (as the original GPS):
 l_q = J^T A^T g, l_qq = J^T A^T H A J with g, H the gradient and Hessian of l12 in z.
@@ -38,6 +42,8 @@ class CostConfig:
     :param tilt_weight: weight on the lateral offset between tip and top (a tilted peg).
     :param final_multiplier: multiplier of the point term at the last step.
     :param action_weight: wu in units of the effort limits.
+    :param descent_height: h_0, the height (m) the targets are lifted by at t = 0.
+    :param descent_steps: t_d, the step at which the lifted targets reach p*.
     """
 
     l1: float = 0.1
@@ -48,6 +54,8 @@ class CostConfig:
     tilt_weight: float = 5.0
     final_multiplier: float = 10.0
     action_weight: float = 1.0
+    descent_height: float = 0.0
+    descent_steps: int = 0
 
 
 class CostExpansion(NamedTuple):
@@ -89,6 +97,17 @@ class PegCost:
         m[-1] = self.config.final_multiplier
         return m
 
+    def _targets(self, targets: Tensor, T: int) -> Tensor:
+        """Per-step targets p*_t, broadcast against the points ``[N, T, 2, 3]``, from p*
+        ``[2, 3]`` (one condition) or ``[N, 1, 2, 3]`` (one per sample)."""
+        c = self.config
+        if c.descent_height <= 0.0 or c.descent_steps <= 0:
+            return targets
+        t = torch.arange(T, dtype=targets.dtype, device=targets.device)
+        lift = targets.new_zeros(T, 1, 3)
+        lift[:, 0, 2] = c.descent_height * (1.0 - t / c.descent_steps).clamp(min=0.0)
+        return targets + lift
+
     def _l12(self, z: Tensor) -> tuple[Tensor, Tensor]:
         """Value and sqrt term ``s = sqrt(gamma + |z|^2)`` for ``z: [..., 8]``."""
         c = self.config
@@ -99,7 +118,8 @@ class PegCost:
     def evaluate(self, x: Tensor, u: Tensor, targets: Tensor) -> Tensor:
         """Per-step cost ``[N, T]`` for x ``[N, T, dX]``, u ``[N, T, dU]``, targets ``[2, 3]``."""
         q = x[..., self.layout.q]
-        d = (self.kinematics.points(q) - targets).flatten(-2)  # [N, T, 6]
+        targets_t = self._targets(targets, x.shape[-2])
+        d = (self.kinematics.points(q) - targets_t).flatten(-2)  # [N, T, 6]
         value, _ = self._l12(d @ self.A.T)
         action = 0.5 * (self.wu * u * u).sum(-1)
         return action + self._multiplier(x.shape[-2], x) * value
@@ -110,7 +130,7 @@ class PegCost:
         N, T, dX = x.shape
         dU = u.shape[-1]
         q = x[..., self.layout.q]
-        d = (self.kinematics.points(q) - targets).flatten(-2)
+        d = (self.kinematics.points(q) - self._targets(targets, T)).flatten(-2)
         z = d @ self.A.T  # [N, T, 8]
         value, s = self._l12(z)
         g = (c.l2 + c.l1 / s)[..., None] * z  # dl12/dz

@@ -36,6 +36,7 @@ class PolicyConfig:
     :param std_floor: lower bound on the whitening standard deviation, so constant state
         dimensions (zero variance) do not divide by zero.
     :param seed: seed of the weight initialisation and of the S-step's minibatch draws.
+    :param pre_weight: weight lambda of KL(pi || p_pre) in the S-step loss (paper eq. 8: 1).
     :param num_threads: torch intra-op threads during the S-step's Adam loop (None: leave
         torch's setting). Its matrices are too small to gain from threads, and on busy cores
         each parallel region waits for a descheduled thread: with 2 threads on 2 loaded cores a
@@ -48,6 +49,7 @@ class PolicyConfig:
     steps: int = 3000
     std_floor: float = 1e-3
     seed: int = 0
+    pre_weight: float = 1.0
     num_threads: int | None = 1
 
 

@@ -1,7 +1,9 @@
 """The S-step: distil the local controllers into the global policy (paper eq. 8).
 
     pi_theta <- argmin_theta  E_{x in D_g} [ KL(pi_theta(.|x) || p_cur(.|x))
-                                             + KL(pi_theta(.|x) || p_pre(.|x)) ]
+                                             + lambda KL(pi_theta(.|x) || p_pre(.|x)) ]
+
+lambda (``PolicyConfig.pre_weight``) is 1 in the paper.
 
 Layout: rows are states flattened over samples and time, ``[M, ...]``.
 """
@@ -79,32 +81,34 @@ def _constant_terms(policy_cov: Tensor, prec: Tensor, name: str) -> Tensor:
     return 0.5 * (trace - dU - _logdet_pd(prec, name) - logdet_cov)
 
 
-def _row_constants(policy_cov: Tensor, batch: DistillBatch) -> Tensor:
+def _row_constants(policy_cov: Tensor, batch: DistillBatch, pre_weight: float) -> Tensor:
     """Per-row constant part of the loss, ``[M]``; rows without p_pre get an identity
     precision in the masked-out term so the Cholesky factor exists."""
     eye = torch.eye(policy_cov.shape[-1], dtype=policy_cov.dtype, device=policy_cov.device)
     has_pre = batch.has_pre[:, None, None]
     prec_pre = torch.where(has_pre, batch.prec_pre, eye)
     pre = torch.where(batch.has_pre, _constant_terms(policy_cov, prec_pre, "prec_pre"), 0.0)
-    return _constant_terms(policy_cov, batch.prec_cur, "prec_cur") + pre
+    return _constant_terms(policy_cov, batch.prec_cur, "prec_cur") + pre_weight * pre
 
 
-def _row_quadratics(policy_mean: Tensor, batch: DistillBatch) -> Tensor:
-    """Per-row precision-weighted regression part of the loss,
-    ``1/2 [(mu - mu_cur)^T P_cur (mu - mu_cur) + has_pre (mu - mu_pre)^T P_pre (mu - mu_pre)]``."""
+def _row_quadratics(policy_mean: Tensor, batch: DistillBatch, pre_weight: float) -> Tensor:
+    """Per-row precision-weighted regression part of the loss, ``1/2 [(mu - mu_cur)^T P_cur
+    (mu - mu_cur) + lambda has_pre (mu - mu_pre)^T P_pre (mu - mu_pre)]``."""
     cur = _quadratic(policy_mean - batch.mean_cur, batch.prec_cur)
     # Masking the inputs (not the result) keeps values and gradients finite whatever the
     # ignored rows hold.
     diff_pre = torch.where(batch.has_pre[:, None], policy_mean - batch.mean_pre, 0.0)
     prec_pre = torch.where(batch.has_pre[:, None, None], batch.prec_pre, 0.0)
     pre = _quadratic(diff_pre, prec_pre)
-    return 0.5 * (cur + pre)
+    return 0.5 * (cur + pre_weight * pre)
 
 
-def kl_loss(policy_mean: Tensor, policy_cov: Tensor, batch: DistillBatch) -> Tensor:
+def kl_loss(
+    policy_mean: Tensor, policy_cov: Tensor, batch: DistillBatch, pre_weight: float = 1.0
+) -> Tensor:
     """The S-step objective (paper eq. 8), averaged over rows:
 
-        ``L = 1/M sum_m [KL(pi || p_cur) + has_pre_m KL(pi || p_pre)]``, with
+        ``L = 1/M sum_m [KL(pi || p_cur) + lambda has_pre_m KL(pi || p_pre)]``, with
         ``KL(pi || p) = 1/2 [tr(P Sigma_pi) + (mu - mu_p)^T P (mu - mu_p) - dU
                              + log det Sigma_p - log det Sigma_pi]``
 
@@ -114,26 +118,30 @@ def kl_loss(policy_mean: Tensor, policy_cov: Tensor, batch: DistillBatch) -> Ten
     :param policy_mean: ``mu_theta(x)`` at the batch's states, ``[M, dU]``.
     :param policy_cov: ``Sigma_pi``, ``[dU, dU]`` (diagonal for :class:`GaussianPolicy`).
     :param batch: states and controller Gaussians.
+    :param pre_weight: lambda, the weight of the p_pre term (paper: 1).
     :return: scalar loss.
     """
     _check(batch)
-    rows = _row_constants(policy_cov, batch) + _row_quadratics(policy_mean, batch)
+    rows = _row_constants(policy_cov, batch, pre_weight) + _row_quadratics(
+        policy_mean, batch, pre_weight
+    )
     return rows.mean()
 
 
-def optimal_variance(batch: DistillBatch) -> Tensor:
+def optimal_variance(batch: DistillBatch, pre_weight: float = 1.0) -> Tensor:
     """Diagonal ``Sigma_pi = diag(sigma^2)`` minimising :func:`kl_loss`, ``[dU]``.
 
-    The loss depends on ``sigma_i^2`` through ``1/2 sum_terms (P_ii sigma_i^2 - log sigma_i^2)``;
+    The loss depends on ``sigma_i^2`` through ``1/2 sum_terms w (P_ii sigma_i^2 - log sigma_i^2)``;
     setting the derivative to zero gives
-        ``sigma_i^2 = n_terms / sum_terms P_ii`` = 1 / (mean of ``P_ii`` over the terms that count),
-    where the terms are every row's ``P_cur`` and the ``P_pre`` of rows with ``has_pre``.
+        ``sigma_i^2 = sum_terms w / sum_terms w P_ii`` (a weighted mean of ``P_ii``, inverted),
+    where the terms are every row's ``P_cur`` (w = 1) and the ``P_pre`` of rows with
+    ``has_pre`` (w = lambda).
     """
     _check(batch)
     diag_cur = batch.prec_cur.diagonal(dim1=-2, dim2=-1)  # [M, dU]
     diag_pre = torch.where(batch.has_pre[:, None], batch.prec_pre.diagonal(dim1=-2, dim2=-1), 0.0)
-    n_terms = batch.M + batch.has_pre.sum()
-    return n_terms / (diag_cur.sum(0) + diag_pre.sum(0))
+    n_terms = batch.M + pre_weight * batch.has_pre.to(diag_cur.dtype).sum()
+    return n_terms / (diag_cur.sum(0) + pre_weight * diag_pre.sum(0))
 
 
 @contextmanager
@@ -176,9 +184,9 @@ def distill(
     _check(batch)
     batch = DistillBatch(*(field.detach() for field in batch))
     policy.set_whitening(batch.x)
-    policy.set_variance(optimal_variance(batch))
+    policy.set_variance(optimal_variance(batch, config.pre_weight))
     with torch.no_grad():
-        constants = _row_constants(policy.covariance(), batch)  # [M]
+        constants = _row_constants(policy.covariance(), batch, config.pre_weight)  # [M]
     optimiser = torch.optim.Adam(policy.net.parameters(), lr=config.learning_rate)
     # cosine decay to 5% of the rate: large early steps, a settled fit at the end
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
@@ -189,7 +197,8 @@ def distill(
     with _intra_op_threads(config.num_threads):
         for rows in draws.to(batch.x.device):
             minibatch = DistillBatch(*(field[rows] for field in batch))
-            loss = (_row_quadratics(policy(minibatch.x), minibatch) + constants[rows]).mean()
+            quadratics = _row_quadratics(policy(minibatch.x), minibatch, config.pre_weight)
+            loss = (quadratics + constants[rows]).mean()
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
