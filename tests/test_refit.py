@@ -1,12 +1,14 @@
-"""The checked refits of the S-step: keep the best policy by its rollouts, undo the rest."""
+"""The checked refits of the S-step (keep the best policy by its rollouts, undo the rest) and
+the choice of the controllers that label D_g."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from lolgps_torch.lolgps.stream import StreamConfig, StreamLearner
+from lolgps_torch.lolgps.stream import StreamConfig, StreamLearner, label_source
 from lolgps_torch.policy import GaussianPolicy
+from lolgps_torch.types import LinearGaussian
 
 
 def _first_weight(policy: GaussianPolicy) -> float:
@@ -54,3 +56,19 @@ def test_no_refit_when_the_policy_already_succeeds(monkeypatch: pytest.MonkeyPat
     monkeypatch.setattr(learner, "_distill", lambda *a, **k: pytest.fail("unexpected fit"))
     monkeypatch.setattr(learner, "_score", lambda offsets: (len(offsets), -0.001))
     assert learner._refit(0, [], [(0.0, 0.0)], seed=0) == ((1, -0.001), None)
+
+
+def test_d_g_is_labelled_by_a_p_cur_that_succeeded() -> None:
+    def controller(gain: float) -> LinearGaussian:
+        T, dU, dX = 3, 2, 4
+        return LinearGaussian(
+            gain * torch.ones(T, dU, dX, dtype=torch.float64),
+            torch.zeros(T, dU, dtype=torch.float64),
+            torch.eye(dU, dtype=torch.float64).expand(T, dU, dU),
+        )
+
+    final = (controller(1.0), controller(2.0), 12)
+    sampled = (controller(3.0), None, 9)
+    assert label_source(final, True, sampled) is final
+    assert label_source(final, False, sampled) is sampled  # the final p_cur misses
+    assert label_source(final, False, None) is final  # nothing verified to fall back on

@@ -109,6 +109,7 @@ class StreamConfig:
 
 # a condition's hole offset and D_g with the controllers that label it (p_cur, p_pre)
 Labelled = tuple[tuple[float, float], ConditionSamples, LinearGaussian, LinearGaussian | None]
+Labels = tuple[LinearGaussian, LinearGaussian | None, int]
 
 
 def controller_targets(p: LinearGaussian, x: Tensor) -> tuple[Tensor, Tensor]:
@@ -146,25 +147,33 @@ class StreamLearner:
         alpha = cfg.alpha
         kept: list[Trajectories] = []
         first_success: int | None = None
+        # the p_cur (and p_pre) of the latest iteration whose samples succeeded
+        sampled: Labels | None = None
         iterations = 0
         for i in range(cfg.max_iterations):
             iterations = i + 1
-            p_act = learner.p_cur if p_pre is None else mix(p_pre, learner.p_cur, alpha)
+            p_cur = learner.p_cur
+            p_act = p_cur if p_pre is None else mix(p_pre, p_cur, alpha)
             samples, p_pre = self._step(
                 index, i, learner, p_act, pre_prior, cfg.cstep_anchor == "pre", alpha
             )
             if samples.success.any():
                 first_success = i if first_success is None else first_success
                 kept.append(Trajectories(*(f[samples.success] for f in samples)))
+                sampled = (p_cur, p_pre, i)
             if cfg.alpha_schedule == "dynamic":
                 alpha = min(1.0, alpha + cfg.alpha_step)
             if len(kept) >= cfg.success_phases:
                 break
 
+        threshold = task.config.world.success_threshold
+        local = self._rollout_noiseless(learner.p_cur, offset)
+        final = (learner.p_cur, p_pre, iterations)
+        label_cur, label_pre, labels_from = label_source(final, local < threshold, sampled)
         t0 = time.perf_counter()
-        data = self._with_targets(kept, learner.p_cur, p_pre)
+        data = self._with_targets(kept, label_cur, label_pre)
         seed = cfg.seed * 1000 + index
-        current: list[Labelled] = [(offset, data, learner.p_cur, p_pre)]
+        current: list[Labelled] = [(offset, data, label_cur, label_pre)]
         losses = self._distill(current, seed)
         check = [offset] + (self.replay.offsets() if cfg.replay else [])
         best = None
@@ -176,11 +185,13 @@ class StreamLearner:
             prior = pre_prior if pre_prior is not None else prior_from_config(cfg.local.dynamics)
             for j in range(cfg.consolidate):
                 before = (data, p_pre, learner.p_cur, losses, self._snapshot())
+                before_labels = (label_cur, label_pre, labels_from)
                 samples, p_pre = self._step(index, iterations, learner, learner.p_cur, prior, True)
                 if samples.success.any():
                     kept.append(Trajectories(*(f[samples.success] for f in samples)))
                 iterations += 1
-                data = self._with_targets(kept, learner.p_cur, p_pre)
+                label_cur, label_pre, labels_from = learner.p_cur, p_pre, iterations
+                data = self._with_targets(kept, label_cur, label_pre)
                 seed = (cfg.seed * 1000 + index) * 100 + j + 1
                 losses = self._distill(
                     [(offset, data, learner.p_cur, p_pre)], seed, cfg.consolidate_steps
@@ -190,13 +201,13 @@ class StreamLearner:
                 score = self._score(check)
                 if score <= best:
                     data, p_pre, learner.p_cur, losses, state = before
+                    label_cur, label_pre, labels_from = before_labels
                     self.policy.load_state_dict(state)
                     self.log({"condition": index, "event": "consolidation undone", "round": j})
                     break
                 best = score
-        local = self._rollout_noiseless(learner.p_cur, offset)
+            local = self._rollout_noiseless(learner.p_cur, offset)
         policy = self._policy_distances([offset])[0]
-        threshold = task.config.world.success_threshold
         entry = {
             "condition": index,
             "offset": list(offset),
@@ -205,6 +216,7 @@ class StreamLearner:
             "successful_samples": int(data.x.shape[0]),
             "local_final_distance": local,
             "local_success": local < threshold,
+            "labels_from_iteration": labels_from,
             "policy_final_distance_after": policy,
             "policy_success_after": policy < threshold,
             "distill_loss": losses[-1] if losses else None,
@@ -221,7 +233,7 @@ class StreamLearner:
         folder = self._checkpoint_dir(index)
         self.policy.save(folder)
         _write_json(os.path.join(folder, "entry.json"), entry)
-        self.replay.append_condition(index, offset, data, iterations, learner.p_cur, p_pre)
+        self.replay.append_condition(index, offset, data, iterations, label_cur, label_pre)
         return entry
 
     def _step(
@@ -451,6 +463,17 @@ def _write_json(path: str, data: Any) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+def label_source(final: Labels, final_succeeds: bool, sampled: Labels | None) -> Labels:
+    """The controllers (p_cur, p_pre) whose means and precisions label a condition's D_g,
+    with the iteration at which that p_cur acts (the final one: the iteration count).
+
+    The final p_cur, unless its own noiseless rollout misses; then the p_cur whose samples
+    last succeeded (``sampled``), so that the policy never imitates a controller known to
+    fail. With no such p_cur, the final one.
+    """
+    return final if final_succeeds or sampled is None else sampled
 
 
 def _targets(
