@@ -61,14 +61,16 @@ def add_task_arguments(parser: argparse.ArgumentParser, default_urdf: str | None
         "--descent-height",
         type=float,
         default=cost.descent_height,
-        help="lift the cost's targets by this height (m) at t = 0, falling linearly to 0 at "
-        "--descent-steps, so the peg aligns over the hole before it goes down (default %(default)s: off)",
+        help="lift the cost's targets by this height (m) at t = 0, falling linearly to the "
+        "hole floor at --descent-steps, so the peg aligns over the hole before it goes down; "
+        "0 turns it off (default %(default)s)",
     )
     group.add_argument(
         "--descent-steps",
         type=int,
         default=cost.descent_steps,
-        help="step at which the lifted targets reach the hole floor (default %(default)s: off)",
+        help="step at which the lifted targets reach the hole floor; 0 turns it off "
+        "(default %(default)s)",
     )
 
 

@@ -111,10 +111,13 @@ def test_optimal_variance_minimises_the_loss(pre_weight: float) -> None:
     assert grad.abs().max() < 1e-12
 
 
-def nonlinear_batch(M: int, seed: int) -> tuple[DistillBatch, torch.Tensor]:
+def nonlinear_batch(
+    M: int, seed: int, pre_weight: float = 1.0
+) -> tuple[DistillBatch, torch.Tensor]:
     """A batch whose two targets are nonlinear in x (p_pre everywhere; fixed precisions, as at
-    one time step), and the minimiser of the regression part, the precision-weighted average
-    ``(P_cur + P_pre)^{-1} (P_cur mu_cur + P_pre mu_pre)`` ([M, dU])."""
+    one time step), and the minimiser of the regression part with p_pre weighted by lambda,
+    the precision-weighted average
+    ``(P_cur + lambda P_pre)^{-1} (P_cur mu_cur + lambda P_pre mu_pre)`` ([M, dU])."""
     g = torch.Generator().manual_seed(seed)
     scale, shift = (
         torch.tensor([1.0, 5.0, 0.2], dtype=F64),
@@ -125,26 +128,28 @@ def nonlinear_batch(M: int, seed: int) -> tuple[DistillBatch, torch.Tensor]:
     mean_pre = torch.stack([z[:, 0] ** 2, z[:, 1] - z[:, 0]], 1)
     prec_cur = random_spd(2, generator=g).expand(M, 2, 2)
     prec_pre = random_spd(2, generator=g).expand(M, 2, 2)
-    rhs = (prec_cur @ mean_cur[:, :, None] + prec_pre @ mean_pre[:, :, None]).squeeze(-1)
-    target = torch.linalg.solve(prec_cur + prec_pre, rhs)
+    weighted_pre = pre_weight * prec_pre
+    rhs = (prec_cur @ mean_cur[:, :, None] + weighted_pre @ mean_pre[:, :, None]).squeeze(-1)
+    target = torch.linalg.solve(prec_cur + weighted_pre, rhs)
     has_pre = torch.ones(M, dtype=torch.bool)
     return DistillBatch(z * scale + shift, mean_cur, prec_cur, mean_pre, prec_pre, has_pre), target
 
 
-def test_distill_fits_a_nonlinear_target() -> None:
-    batch, target = nonlinear_batch(M=3000, seed=6)
-    config = PolicyConfig(steps=1500, batch_size=64, seed=0)
+@pytest.mark.parametrize("pre_weight", [PolicyConfig().pre_weight, 1.0])  # default, paper
+def test_distill_fits_a_nonlinear_target(pre_weight: float) -> None:
+    batch, target = nonlinear_batch(M=3000, seed=6, pre_weight=pre_weight)
+    config = PolicyConfig(steps=1500, batch_size=64, seed=0, pre_weight=pre_weight)
     policy = GaussianPolicy(3, 2, config)
     assert not policy.trained
     with torch.no_grad():
-        initial = kl_loss(policy(batch.x), policy.covariance(), batch)
+        initial = kl_loss(policy(batch.x), policy.covariance(), batch, pre_weight)
     history = distill(policy, batch)
     assert policy.trained and len(history) == config.steps
-    variance = optimal_variance(batch)
+    variance = optimal_variance(batch, pre_weight)
     assert torch.equal(policy.variance, variance)
     with torch.no_grad():
-        final = kl_loss(policy(batch.x), policy.covariance(), batch)
-        floor = kl_loss(target, policy.covariance(), batch)  # the best any mean can do
+        final = kl_loss(policy(batch.x), policy.covariance(), batch, pre_weight)
+        floor = kl_loss(target, policy.covariance(), batch, pre_weight)  # the best any mean
         error = (policy(batch.x) - target).norm(dim=1).pow(2).mean().sqrt()
     assert final - floor < 0.01 * (initial - floor)
     assert error < 0.05 * target.std(0).norm()

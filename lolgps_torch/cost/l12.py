@@ -9,8 +9,8 @@ sqrt(per-axis point weights) on its first six rows and sqrt(tilt weight) times t
 offset between tip and top on the last two.  m_t is 1, or ``final_multiplier`` at t = T-1.
 wu_j = action_weight / effort_j^2, so the action cost is in units of the effort limits.
 
-The optional descent schedule (h_0 = ``descent_height``, t_d = ``descent_steps``; off when
-either is 0) lifts both targets by h_t, so the optimal trajectory first aligns over the hole and
+The descent schedule (h_0 = ``descent_height``, t_d = ``descent_steps``; off when either is
+0) lifts both targets by h_t, so the optimal trajectory first aligns over the hole and
 then lowers the peg at a steady rate instead of diving at it.  The state keeps p - p*.
 
 The expansion is Gauss-Newton through forward kinematics (as the original GPS):
@@ -54,8 +54,8 @@ class CostConfig:
     tilt_weight: float = 5.0
     final_multiplier: float = 10.0
     action_weight: float = 1.0
-    descent_height: float = 0.0
-    descent_steps: int = 0
+    descent_height: float = 0.2
+    descent_steps: int = 40
 
 
 class CostExpansion(NamedTuple):

@@ -49,7 +49,7 @@ class PolicyConfig:
     steps: int = 3000
     std_floor: float = 1e-3
     seed: int = 0
-    pre_weight: float = 1.0
+    pre_weight: float = 0.1
     num_threads: int | None = 1
 
 
