@@ -1,10 +1,11 @@
 """Re-run the S-step on a finished run's replay with other settings, and test the result.
 
     python scripts/redistill.py --run DIR [--steps N] [--width W] [--batch-size B] [--lr LR]
-                                [--no-pre] [--jitter 0.004] [--seed S] [--out DIR2]
+                                [--pre-weight W] [--jitter 0.004] [--seed S] [--out DIR2]
 
 A fresh global policy is fitted (paper eq. 8) on the D_g of every condition in DIR/replay.h5,
-with the stored targets, all at once: the batch S-step the stream's last distillation
+with the stored targets (and the run's weight on the p_pre term unless ``--pre-weight`` is
+given), all at once: the batch S-step the stream's last distillation
 approximates. It then runs without noise at each training position and at four positions
 ``--jitter`` metres away from it (+-x, +-y), and prints the final distances and success counts.
 Local learning is not repeated, so S-step settings can be compared on the same data in seconds
@@ -14,6 +15,7 @@ rather than re-running the stream. ``--out`` saves the policy (policy.pt, policy
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -44,7 +46,10 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=d.batch_size, help="(%(default)s)")
     parser.add_argument("--lr", type=float, default=d.learning_rate, help="(%(default)s)")
     parser.add_argument(
-        "--no-pre", action="store_true", help="drop the KL(pi || p_pre) term of every row"
+        "--pre-weight",
+        type=float,
+        default=None,
+        help="weight of the KL(pi || p_pre) term, 0 drops it (default: the run's own)",
     )
     parser.add_argument(
         "--jitter", type=float, default=0.004, help="offset (m) of the extra test positions"
@@ -54,6 +59,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.steps < 1 or args.width < 1 or args.layers < 1 or args.batch_size < 1:
         raise LolgpsError("--steps, --width, --layers and --batch-size must be positive")
+    if args.pre_weight is not None and args.pre_weight < 0.0:
+        raise LolgpsError(f"--pre-weight {args.pre_weight}: must be >= 0")
     torch.manual_seed(args.seed)
 
     info = read_run(args.run)
@@ -63,12 +70,17 @@ def main() -> None:
         raise LolgpsError(f"{args.run}/replay.h5 holds no conditions")
     records = [replay.read_condition(i) for i in indices]
     batch = replay.load(indices)
-    if args.no_pre:
-        batch = batch._replace(has_pre=torch.zeros_like(batch.has_pre))
     if batch.M == 0:
         raise LolgpsError(f"{args.run}/replay.h5 holds no successful samples")
+    try:
+        with open(Path(args.run) / "config.json") as fh:
+            # runs made before the weight existed used the paper's equal weights
+            run_weight = float(json.load(fh)["stream"]["policy"].get("pre_weight", 1.0))
+    except (KeyError, TypeError, AttributeError, ValueError) as exc:
+        raise LolgpsError(f"{args.run}/config.json: no stream.policy settings ({exc})") from None
     config = replace(
         d,
+        pre_weight=run_weight if args.pre_weight is None else args.pre_weight,
         hidden_sizes=(args.width,) * args.layers,
         steps=args.steps,
         batch_size=args.batch_size,
