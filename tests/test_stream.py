@@ -181,3 +181,17 @@ def test_checked_refits_guard_the_consolidation(tmp_path: Path) -> None:
         if undone:  # an undone round ends the consolidation: no iteration after it
             assert not any("iteration" in r for r in mine[undone[0] :])
     assert ReplayBuffer(out / "replay.h5").conditions() == [0, 1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_default_stream_policy_succeeds_at_7_of_8(seed: int, tmp_path: Path) -> None:
+    """The main job (issue check): after the default 8-condition stream the global policy
+    alone succeeds at >= 7 of the 8 training positions. About 2 minutes per seed."""
+    out = tmp_path / "run"
+    cmd = [*SCRIPT, "--seed", str(seed), "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    entries = json.loads((out / "summary.json").read_text())["conditions"]
+    assert len(entries) == 8
+    assert sum(bool(e["policy_success_end"]) for e in entries) >= 7
