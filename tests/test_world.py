@@ -65,13 +65,20 @@ def test_jacobian_matches_finite_differences(task: PegTask) -> None:
     assert torch.allclose(kin.jacobian(q), fd, atol=1e-8)
 
 
-def test_cost_gradient_and_gauss_newton_hessian(task: PegTask) -> None:
-    gen = torch.Generator().manual_seed(1)
-    N, T, dX, dU = 2, 3, task.layout.dX, task.layout.dU
-    x = torch.zeros(N, T, dX, dtype=torch.float64)
+def _random_trajectories(
+    task: PegTask, N: int, T: int, seed: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """States near q0 (other dimensions zero), random actions, and one condition's targets."""
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.zeros(N, T, task.layout.dX, dtype=torch.float64)
     x[..., task.layout.q] = task.q0 + 0.2 * torch.randn(N, T, 7, dtype=torch.float64, generator=gen)
-    u = torch.randn(N, T, dU, dtype=torch.float64, generator=gen)
-    targets = task.targets([(0.01, -0.02)])[0]
+    u = torch.randn(N, T, task.layout.dU, dtype=torch.float64, generator=gen)
+    return x, u, task.targets([(0.01, -0.02)])[0]
+
+
+def test_cost_gradient_and_gauss_newton_hessian(task: PegTask) -> None:
+    T, dX, dU = 3, task.layout.dX, task.layout.dU
+    x, u, targets = _random_trajectories(task, 2, T, seed=1)
     e = task.cost.expand(x, u, targets)
     assert torch.allclose(e.value, task.cost.evaluate(x, u, targets))
 
@@ -114,12 +121,8 @@ def test_descent_schedule_lifts_the_targets(task: PegTask) -> None:
         CostConfig(descent_height=0.2, descent_steps=4), task.kinematics, task.layout, effort
     )
     plain_cost = PegCost(CostConfig(descent_height=0.0), task.kinematics, task.layout, effort)
-    gen = torch.Generator().manual_seed(3)
-    N, T, dX, dU = 2, 6, task.layout.dX, task.layout.dU
-    x = torch.zeros(N, T, dX, dtype=torch.float64)
-    x[..., task.layout.q] = task.q0 + 0.2 * torch.randn(N, T, 7, dtype=torch.float64, generator=gen)
-    u = torch.randn(N, T, dU, dtype=torch.float64, generator=gen)
-    targets = task.targets([(0.01, -0.02)])[0]
+    T, dX = 6, task.layout.dX
+    x, u, targets = _random_trajectories(task, 2, T, seed=3)
     per_step = targets.expand(T, 2, 3).clone()
     per_step[..., 2] += torch.tensor([0.2, 0.15, 0.1, 0.05, 0.0, 0.0], dtype=torch.float64)[:, None]
     expected = plain_cost.evaluate(x, u, per_step)
