@@ -13,6 +13,7 @@ from lolgps_torch.cost.l12 import CostConfig
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.sim.arm import PegConfig
 from lolgps_torch.sim.placement import PlacementConfig
+from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.task import TaskConfig
 
 
@@ -50,6 +51,13 @@ def add_task_arguments(parser: argparse.ArgumentParser, default_urdf: str | None
         default=None,
         help="start pose (rad); default: derived by inverse kinematics",
     )
+    group.add_argument(
+        "--friction",
+        type=float,
+        default=WorldConfig().friction,
+        help="lateral friction of the table and the hole (the original GPS example: "
+        "frictionless) (default %(default)s)",
+    )
     cost = CostConfig()
     group.add_argument(
         "--action-weight",
@@ -85,7 +93,12 @@ def task_config(args: argparse.Namespace) -> TaskConfig:
         descent_height=args.descent_height,
         descent_steps=args.descent_steps,
     )
-    return TaskConfig(urdf=args.urdf, ee_link=args.ee_link, peg=peg, placement=placement, cost=cost)
+    if args.friction < 0.0:
+        raise LolgpsError(f"--friction {args.friction}: must be >= 0")
+    world = WorldConfig(friction=args.friction)
+    return TaskConfig(
+        urdf=args.urdf, ee_link=args.ee_link, peg=peg, world=world, placement=placement, cost=cost
+    )
 
 
 def run(main: Callable[[], None]) -> None:

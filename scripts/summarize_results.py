@@ -20,6 +20,7 @@ from lolgps_torch.cli import run
 from lolgps_torch.cost.l12 import CostConfig
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.stream import StreamConfig
+from lolgps_torch.sim.world import WorldConfig
 
 
 def _load(path: str) -> dict[str, Any]:
@@ -61,6 +62,7 @@ def label(folder: str) -> str:
         "pre_weight": (stream["policy"].get("pre_weight", 1.0), d.policy.pre_weight),
         "descent_height": (cost.get("descent_height", 0.0), CostConfig().descent_height),
         "descent_steps": (cost.get("descent_steps", 0), CostConfig().descent_steps),
+        "friction": (config["task"]["world"]["friction"], WorldConfig().friction),
         "consolidate": (stream.get("consolidate", d.consolidate), d.consolidate),
         "refits": (stream.get("refits", d.refits), d.refits),
     }
