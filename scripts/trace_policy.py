@@ -1,6 +1,7 @@
 """Trace a run's global policy step by step at its training positions, to see how it misses.
 
     python scripts/trace_policy.py --run DIR [--checkpoint N] [--steps 0 3 6 10 20 50 99]
+                                   [--area-misses K]
 
 For each condition in DIR/replay.h5 it prints two lines:
 
@@ -14,11 +15,17 @@ For each condition in DIR/replay.h5 it prints two lines:
   It tells an under-fitted S-step (large on D_g) from a policy that fits D_g but drifts off it.
 
 ``--checkpoint`` picks the policy saved after that condition (default: the last).
+
+``--area-misses K`` instead traces the test positions of area K in DIR/eval.json (written by
+``scripts/evaluate.py``) that the last stage's policy missed, with their distance to the
+nearest training position: one ``rollout`` line each, no D_g fit.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 from pathlib import Path
 
 import torch
@@ -40,8 +47,18 @@ def main() -> None:
     parser.add_argument(
         "--steps", type=int, nargs="+", default=[0, 3, 6, 10, 20, 50, 99], help="steps to print"
     )
+    parser.add_argument(
+        "--area-misses",
+        type=int,
+        default=None,
+        metavar="K",
+        help="trace test area K's positions the final policy missed (from DIR/eval.json)",
+    )
     args = parser.parse_args()
     info = read_run(args.run)
+    if args.area_misses is not None:
+        trace_area_misses(args.run, info.task, args.area_misses, args.steps)
+        return
     replay = ReplayBuffer(Path(args.run) / "replay.h5")
     records = [replay.read_condition(i) for i in replay.conditions()]
     if not records:
@@ -59,7 +76,7 @@ def main() -> None:
     print(f"policy after condition {last}; columns: steps {args.steps}")
     for i, record in enumerate(records):
         error = rollouts.x[i, steps, tip : tip + 3] * 1000.0
-        cells = " ".join(f"({e[0]:+.0f},{e[1]:+.0f},{e[2]:+.0f})" for e in error.tolist())
+        cells = _cells(error)
         print(
             f"condition {record.condition} ({record.offset[0]:+.3f}, {record.offset[1]:+.3f}) "
             f"rollout tip error mm {cells} final {float(rollouts.final_distance[i]):.3f} m"
@@ -79,6 +96,45 @@ def main() -> None:
             + " ".join(f"{v:.2f}" for v in relative)
             + "; in p_cur's standard deviations "
             + " ".join(f"{v:.1f}" for v in sigmas)
+        )
+
+
+def _cells(error_mm: torch.Tensor) -> str:
+    return " ".join(f"({e[0]:+.0f},{e[1]:+.0f},{e[2]:+.0f})" for e in error_mm.tolist())
+
+
+def trace_area_misses(
+    run_dir: str, task_dict: dict[str, object], area: int, steps: list[int]
+) -> None:
+    """Rollout lines at the positions of test area ``area`` that the last stage missed."""
+    try:
+        evaluation = json.loads((Path(run_dir) / "eval.json").read_text())
+        stage = evaluation["stages"][-1]
+        group = evaluation["groups"][area]
+        finals = stage["per_position"]["final_distance"][area]
+        threshold = float(evaluation["success_threshold"])
+        training = evaluation["training"]["conditions"]
+    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+        raise LolgpsError(f"{run_dir}/eval.json: no test area {area} to trace ({exc})") from None
+    misses = [tuple(p) for p, d in zip(group["positions"], finals, strict=True) if d >= threshold]
+    print(f"{stage['name']} policy, {group['label']}: {len(misses)}/{len(finals)} missed")
+    if not misses:
+        return
+    task = PegTask(task_config_from_dict(task_dict), n_worlds=5)
+    bad = [t for t in steps if not 0 <= t < task.T]
+    if bad:
+        raise LolgpsError(f"--steps must lie in [0, {task.T}), got {bad}")
+    policy = GaussianPolicy.load(Path(run_dir) / stage["checkpoint"])
+    rollouts = task.sample(policy_actor(policy), misses)
+    task.close()
+    tip = task.layout.points.start
+    error = rollouts.x[:, torch.tensor(steps), tip : tip + 3] * 1000.0
+    print(f"columns: steps {steps}")
+    for i, (dx, dy) in enumerate(misses):
+        nearest = min(math.dist((dx, dy), t) for t in training) * 1000.0
+        print(
+            f"({dx:+.3f}, {dy:+.3f}), {nearest:.0f} mm from a training position: rollout tip "
+            f"error mm {_cells(error[i])} final {float(rollouts.final_distance[i]):.3f} m"
         )
 
 

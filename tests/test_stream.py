@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -139,6 +140,28 @@ def test_trace_policy_prints_rollout_and_fit_per_condition(small_run: Path) -> N
         bad.returncode == 2
         and bad.stderr.strip() == "error: --steps must lie in [0, 100), got [100]"
     )
+
+
+def test_trace_policy_traces_an_areas_misses(small_run: Path, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    shutil.copytree(small_run / "run", run_dir)
+    cmd = [sys.executable, "scripts/trace_policy.py", "--run", str(run_dir), "--area-misses", "1"]
+    missing = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert missing.returncode == 2 and missing.stderr.strip().startswith(
+        f"error: {run_dir}/eval.json: no test area 1 to trace"
+    )
+    evaluate = [sys.executable, "scripts/evaluate.py", "--run", str(run_dir)]
+    area_args = ["--areas", "2", "--per-area", "4", "--workers", "1"]
+    done = subprocess.run([*evaluate, *area_args], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    proc = subprocess.run([*cmd, "--steps", "0", "5"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    finals = json.loads((run_dir / "eval.json").read_text())["stages"][-1]["per_position"]
+    missed = sum(d >= 0.06 for d in finals["final_distance"][1])
+    assert lines[0] == f"stream policy, area 1: {missed}/4 missed"
+    rollouts = [line for line in lines if "from a training position: rollout tip error" in line]
+    assert len(rollouts) == missed
 
 
 def test_compare_pre_fit_prints_both_linearisations(small_run: Path) -> None:
