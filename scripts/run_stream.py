@@ -145,6 +145,13 @@ def parse_args() -> argparse.Namespace:
         help=f"perturbed copies of each D_g state in the S-step (default {d.augment})",
     )
     parser.add_argument(
+        "--augment-mode",
+        choices=["independent", "kinematic"],
+        default=d.augment_mode,
+        help="perturb every state dimension on its own, or q and q-dot with the points and "
+        "their velocities recomputed by kinematics (default %(default)s)",
+    )
+    parser.add_argument(
         "--no-replay", action="store_true", help="distil on the current condition only"
     )
     parser.add_argument("--seed", type=int, default=0)
@@ -176,6 +183,7 @@ def stream_config(args: argparse.Namespace) -> StreamConfig:
         seed=args.seed,
         local=replace(d.local, samples=args.samples),
         augment=args.augment,
+        augment_mode=args.augment_mode,
         consolidate=args.consolidate,
         refits=args.refits,
         policy=replace(

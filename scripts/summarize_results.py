@@ -53,6 +53,7 @@ def label(folder: str) -> str:
             d.plan_through_mixture,
         ),
         "augment": (stream.get("augment", d.augment), d.augment),
+        "augment_mode": (stream.get("augment_mode", "independent"), d.augment_mode),
         "corrections": (
             stream.get("corrections", {}).get("rounds", d.corrections.rounds),
             d.corrections.rounds,

@@ -1,5 +1,5 @@
-"""The checked refits of the S-step (keep the best policy by its rollouts, undo the rest) and
-the choice of the controllers that label D_g."""
+"""The checked refits of the S-step (keep the best policy by its rollouts, undo the rest), the
+choice of the controllers that label D_g, and the kinematic augmentation of D_g's states."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import torch
 
 from lolgps_torch.lolgps.stream import StreamConfig, StreamLearner, label_source
 from lolgps_torch.policy import GaussianPolicy
+from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.types import LinearGaussian
 
 
@@ -72,3 +73,24 @@ def test_d_g_is_labelled_by_a_p_cur_that_succeeded() -> None:
     assert label_source(final, True, sampled) is final
     assert label_source(final, False, sampled) is sampled  # the final p_cur misses
     assert label_source(final, False, None) is final  # nothing verified to fall back on
+
+
+def test_kinematic_augmentation_gives_states_the_arm_can_be_in() -> None:
+    task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
+    learner = StreamLearner.__new__(StreamLearner)
+    learner.task = task
+    lay, gen = task.layout, torch.Generator().manual_seed(0)
+    x = torch.randn(4, 3, lay.dX, dtype=torch.float64, generator=gen)
+    x[..., lay.q] = task.q0 + 0.1 * x[..., lay.q]
+    out = learner._consistent(x, (0.01, -0.02))
+    torch.testing.assert_close(out[..., lay.q], x[..., lay.q])
+    torch.testing.assert_close(out[..., lay.qd], x[..., lay.qd])
+    # points against FK (finite differences of FK for the velocities), not the code's own Jacobian
+    expected = task.kinematics.points(x[..., lay.q]) - task.targets([(0.01, -0.02)])[0]
+    torch.testing.assert_close(out[..., lay.points], expected.flatten(-2))
+    h = 1e-6
+    ahead = task.kinematics.points(x[..., lay.q] + h * x[..., lay.qd])
+    behind = task.kinematics.points(x[..., lay.q] - h * x[..., lay.qd])
+    velocity = ((ahead - behind) / (2 * h)).flatten(-2)
+    torch.testing.assert_close(out[..., lay.point_velocities], velocity, atol=1e-6, rtol=1e-6)
+    task.close()

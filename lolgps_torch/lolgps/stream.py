@@ -68,6 +68,9 @@ class StreamConfig:
         labelled by the same linear-Gaussian controllers (valid at any state), so the policy
         learns their feedback, not only their actions along the successful trajectories.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
+    :param augment_mode: ``independent`` perturbs every state dimension on its own;
+        ``kinematic`` perturbs q and q-dot only and recomputes the points, p(q) - p*, and their
+        velocities, J(q) q-dot, so that each copy is a state the arm can be in.
     :param max_iterations: iteration limit per condition.
     :param consolidate: MDGPS iterations after the condition's S-step: sample p_cur, C-step
         against the policy now trained on this condition (``KL(p_cur || p_pre) <= eps``), add
@@ -96,6 +99,7 @@ class StreamConfig:
     success_phases: int = 9
     augment: int = 4
     augment_scale: float = 2.0
+    augment_mode: str = "kinematic"
     max_iterations: int = 25
     consolidate: int = 0
     consolidate_steps: int = 1000
@@ -338,7 +342,7 @@ class StreamLearner:
                 continue
             teachers.append(Teacher(offset, p_cur, p_pre, teacher_reference(self.task, data.x)))
             if data.x.shape[0] > 1 and cfg.augment > 0:
-                batches.append(self._augmented(data, p_cur, p_pre, gen))
+                batches.append(self._augmented(data, p_cur, p_pre, gen, offset))
         earlier = self.replay.conditions() if cfg.replay else []
         for record in (self.replay.read_condition(i, self.task.device) for i in earlier):
             batches.append(record.samples.to_batch())
@@ -392,17 +396,32 @@ class StreamLearner:
         p_cur: LinearGaussian,
         p_pre: LinearGaussian | None,
         gen: torch.Generator,
+        offset: tuple[float, float],
     ) -> DistillBatch:
         """``augment`` copies of D_g's states, each perturbed by ``augment_scale`` times the
-        per-step spread of the condition's successes, labelled by its controllers."""
+        per-step spread of the condition's successes (in the dimensions ``augment_mode``
+        says), labelled by its controllers."""
         x = data.x
         spread = (x - x.mean(0)).std(0)  # [T, dX]
         noise = torch.randn(self.config.augment, *x.shape, generator=gen, dtype=x.dtype)
         x_aug = (x + self.config.augment_scale * spread * noise.to(x.device)).flatten(0, 1)
+        if self.config.augment_mode == "kinematic":
+            x_aug = self._consistent(x_aug, offset)
         aug = ConditionSamples(
             x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0], *_targets(x_aug, p_cur, p_pre)
         )
         return aug.to_batch()
+
+    def _consistent(self, x: Tensor, offset: tuple[float, float]) -> Tensor:
+        """States ``[..., dX]`` with their points and point velocities recomputed from q and
+        q-dot: ``p(q) - p*`` and ``J(q) q-dot``."""
+        lay, kin = self.task.layout, self.task.kinematics
+        q, qd = x[..., lay.q], x[..., lay.qd]
+        points, jac = kin.points_and_jacobian(q)
+        out = x.clone()
+        out[..., lay.points] = (points - self.task.targets([offset])[0]).flatten(-2)
+        out[..., lay.point_velocities] = (jac @ qd.unsqueeze(-1)).squeeze(-1)
+        return out
 
     def _rollout_noiseless(self, p: LinearGaussian, offset: tuple[float, float]) -> float:
         zero = torch.zeros(
