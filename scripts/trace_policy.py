@@ -35,7 +35,7 @@ from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import checkpoint_dir, read_run
 from lolgps_torch.policy import GaussianPolicy, policy_actor
-from lolgps_torch.task import PegTask, task_config_from_dict
+from lolgps_torch.task import PegTask, TaskConfig, task_config_from_dict
 
 
 def main() -> None:
@@ -56,8 +56,13 @@ def main() -> None:
     )
     args = parser.parse_args()
     info = read_run(args.run)
+    task_config = task_config_from_dict(info.task)
+    T = task_config.world.T
+    bad = [t for t in args.steps if not 0 <= t < T]
+    if bad:
+        raise LolgpsError(f"--steps must lie in [0, {T}), got {bad}")
     if args.area_misses is not None:
-        trace_area_misses(args.run, info.task, args.area_misses, args.steps)
+        trace_area_misses(args.run, task_config, args.area_misses, args.steps)
         return
     replay = ReplayBuffer(Path(args.run) / "replay.h5")
     records = [replay.read_condition(i) for i in replay.conditions()]
@@ -65,21 +70,13 @@ def main() -> None:
         raise LolgpsError(f"{args.run}/replay.h5 holds no conditions")
     last = records[-1].condition if args.checkpoint is None else args.checkpoint
     policy = GaussianPolicy.load(checkpoint_dir(args.run, last))
-    task = PegTask(task_config_from_dict(info.task), n_worlds=5)
-    bad = [t for t in args.steps if not 0 <= t < task.T]
-    if bad:
-        raise LolgpsError(f"--steps must lie in [0, {task.T}), got {bad}")
+    errors, finals = _tip_errors(task_config, policy, [r.offset for r in records], args.steps)
     steps = torch.tensor(args.steps)
-    rollouts = task.sample(policy_actor(policy), [r.offset for r in records])
-    task.close()
-    tip = task.layout.points.start
     print(f"policy after condition {last}; columns: steps {args.steps}")
     for i, record in enumerate(records):
-        error = rollouts.x[i, steps, tip : tip + 3] * 1000.0
-        cells = _cells(error)
         print(
             f"condition {record.condition} ({record.offset[0]:+.3f}, {record.offset[1]:+.3f}) "
-            f"rollout tip error mm {cells} final {float(rollouts.final_distance[i]):.3f} m"
+            f"rollout tip error mm {_cells(errors[i])} final {finals[i]:.3f} m"
         )
         samples = record.samples
         if samples.x.shape[0] == 0:
@@ -99,13 +96,27 @@ def main() -> None:
         )
 
 
+def _tip_errors(
+    task_config: TaskConfig,
+    policy: GaussianPolicy,
+    offsets: list[tuple[float, float]],
+    steps: list[int],
+) -> tuple[torch.Tensor, list[float]]:
+    """The policy's noiseless rollouts at ``offsets``: the tip error ``p_tip - p*_tip`` (mm)
+    at ``steps``, ``[len(offsets), len(steps), 3]``, and the final distances (m)."""
+    task = PegTask(task_config, n_worlds=5)
+    rollouts = task.sample(policy_actor(policy), offsets)
+    task.close()
+    tip = task.layout.points.start
+    errors = rollouts.x[:, torch.tensor(steps), tip : tip + 3] * 1000.0
+    return errors, rollouts.final_distance.tolist()
+
+
 def _cells(error_mm: torch.Tensor) -> str:
     return " ".join(f"({e[0]:+.0f},{e[1]:+.0f},{e[2]:+.0f})" for e in error_mm.tolist())
 
 
-def trace_area_misses(
-    run_dir: str, task_dict: dict[str, object], area: int, steps: list[int]
-) -> None:
+def trace_area_misses(run_dir: str, task_config: TaskConfig, area: int, steps: list[int]) -> None:
     """Rollout lines at the positions of test area ``area`` that the last stage missed."""
     try:
         evaluation = json.loads((Path(run_dir) / "eval.json").read_text())
@@ -120,21 +131,14 @@ def trace_area_misses(
     print(f"{stage['name']} policy, {group['label']}: {len(misses)}/{len(finals)} missed")
     if not misses:
         return
-    task = PegTask(task_config_from_dict(task_dict), n_worlds=5)
-    bad = [t for t in steps if not 0 <= t < task.T]
-    if bad:
-        raise LolgpsError(f"--steps must lie in [0, {task.T}), got {bad}")
     policy = GaussianPolicy.load(Path(run_dir) / stage["checkpoint"])
-    rollouts = task.sample(policy_actor(policy), misses)
-    task.close()
-    tip = task.layout.points.start
-    error = rollouts.x[:, torch.tensor(steps), tip : tip + 3] * 1000.0
+    errors, final = _tip_errors(task_config, policy, misses, steps)
     print(f"columns: steps {steps}")
     for i, (dx, dy) in enumerate(misses):
         nearest = min(math.dist((dx, dy), t) for t in training) * 1000.0
         print(
             f"({dx:+.3f}, {dy:+.3f}), {nearest:.0f} mm from a training position: rollout tip "
-            f"error mm {_cells(error[i])} final {float(rollouts.final_distance[i]):.3f} m"
+            f"error mm {_cells(errors[i])} final {final[i]:.3f} m"
         )
 
 
