@@ -11,8 +11,8 @@ import torch
 
 from lolgps_torch.cost.l12 import CostConfig
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.sim.arm import PegConfig
-from lolgps_torch.sim.placement import PlacementConfig
+from lolgps_torch.robot.arm import PegConfig
+from lolgps_torch.robot.placement import PlacementConfig
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.task import TaskConfig
 

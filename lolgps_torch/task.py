@@ -12,11 +12,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lolgps_torch.cost.kinematics import PegKinematics
 from lolgps_torch.cost.l12 import CostConfig, PegCost
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.sim.arm import ArmSpec, PegConfig, load_arm
-from lolgps_torch.sim.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
+from lolgps_torch.robot.arm import ArmSpec, PegConfig, load_arm
+from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import Actor, Sampler
 from lolgps_torch.sim.world import WorldConfig

@@ -84,3 +84,57 @@ class Trajectories(NamedTuple):
     @property
     def N(self) -> int:
         return int(self.x.shape[0])
+
+
+class DistillBatch(NamedTuple):
+    """States of successful samples with the two controllers' action Gaussians at those states.
+
+    x: ``[M, dX]``; mean_cur, mean_pre: ``[M, dU]`` (``K_t x + k_t`` of p_cur and p_pre);
+    prec_cur, prec_pre: ``[M, dU, dU]`` (``cov_t^{-1}``); has_pre: ``[M]`` bool, false where no
+    p_pre existed (before the first S-step), where only ``KL(pi || p_cur)`` counts and
+    ``mean_pre`` and ``prec_pre`` are ignored (zeros by convention).
+    """
+
+    x: Tensor
+    mean_cur: Tensor
+    prec_cur: Tensor
+    mean_pre: Tensor
+    prec_pre: Tensor
+    has_pre: Tensor
+
+    @property
+    def M(self) -> int:
+        return int(self.x.shape[0])
+
+
+class ConditionSamples(NamedTuple):
+    """The successful samples of one condition with their targets at sample time.
+
+    x: ``[M, T, dX]``, u: ``[M, T, dU]``, cost: ``[M, T]``, final_distance: ``[M]``,
+    mean_cur / mean_pre: ``[M, T, dU]`` action means of p_cur / p_pre at ``x``,
+    prec_cur / prec_pre: ``[M, T, dU, dU]`` their precisions, has_pre: ``[M]`` bool (false where
+    no p_pre existed; its mean and precision are then zeros).
+    """
+
+    x: Tensor
+    u: Tensor
+    cost: Tensor
+    final_distance: Tensor
+    mean_cur: Tensor
+    prec_cur: Tensor
+    mean_pre: Tensor
+    prec_pre: Tensor
+    has_pre: Tensor
+
+    def to_batch(self) -> DistillBatch:
+        """Flatten samples and time into the rows of a :class:`DistillBatch` (``M T`` rows)."""
+        M, T, dX = self.x.shape
+        dU = self.mean_cur.shape[-1]
+        return DistillBatch(
+            x=self.x.reshape(M * T, dX),
+            mean_cur=self.mean_cur.reshape(M * T, dU),
+            prec_cur=self.prec_cur.reshape(M * T, dU, dU),
+            mean_pre=self.mean_pre.reshape(M * T, dU),
+            prec_pre=self.prec_pre.reshape(M * T, dU, dU),
+            has_pre=self.has_pre.repeat_interleave(T),
+        )

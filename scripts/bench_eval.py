@@ -23,7 +23,7 @@ from lolgps_torch.cli import run
 from lolgps_torch.evaluation.areas import AreaConfig, sample_area_positions
 from lolgps_torch.evaluation.evaluate import Job, run_jobs
 from lolgps_torch.policy.net import GaussianPolicy
-from lolgps_torch.sim.arm import load_arm
+from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import TaskConfig
 

@@ -21,16 +21,16 @@ import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import (
-    ConditionSamples,
     ExportReport,
     ReplayBuffer,
     export_hdf5,
     export_minari,
     load_dataset,
 )
-from lolgps_torch.sim.arm import load_arm
+from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import TaskConfig
+from lolgps_torch.types import ConditionSamples
 
 URDF = str(Path(__file__).resolve().parents[1] / "robots" / "kuka_peg.urdf")
 

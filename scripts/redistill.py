@@ -26,8 +26,9 @@ from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import read_run
-from lolgps_torch.policy import DistillBatch, GaussianPolicy, PolicyConfig, distill, policy_actor
+from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill, policy_actor
 from lolgps_torch.task import PegTask, task_config_from_dict
+from lolgps_torch.types import DistillBatch
 
 
 def main() -> None:

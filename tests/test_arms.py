@@ -10,7 +10,7 @@ from pathlib import Path
 import pybullet_data
 import pytest
 
-from lolgps_torch.sim.arm import load_arm
+from lolgps_torch.robot.arm import load_arm
 
 DATA = pybullet_data.getDataPath()
 XARM = os.path.join(DATA, "xarm/xarm6_robot.urdf")

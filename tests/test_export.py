@@ -20,17 +20,17 @@ import pytest
 import torch
 
 from lolgps_torch.data import (
-    ConditionSamples,
     ReplayBuffer,
     export_hdf5,
     export_minari,
     load_dataset,
 )
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.sim.arm import load_arm
+from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import TaskConfig
+from lolgps_torch.types import ConditionSamples
 
 F64 = torch.float64
 ROOT = Path(__file__).resolve().parents[1]

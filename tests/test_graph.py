@@ -6,9 +6,9 @@ from __future__ import annotations
 import torch
 
 from lolgps_torch.controllers import mix
-from lolgps_torch.policy import DistillBatch, kl_loss
+from lolgps_torch.policy import kl_loss
 from lolgps_torch.trajopt import c_step
-from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost
+from lolgps_torch.types import DistillBatch, LinearDynamics, LinearGaussian, QuadraticCost
 
 T, dX, dU = 8, 4, 2
 

@@ -6,7 +6,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.utils.env_checker import check_env
 
-import lolgps_torch.sim.gym_env  # noqa: F401  (registers the id)
+import lolgps_torch.gym_env  # noqa: F401  (registers the id)
 
 
 def test_env_passes_gymnasium_checker() -> None:

@@ -11,7 +11,6 @@ from torch.distributions import MultivariateNormal, kl_divergence
 from lolgps_torch.dynamics import GMMPrior
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy import (
-    DistillBatch,
     GaussianPolicy,
     PolicyConfig,
     distill,
@@ -20,6 +19,7 @@ from lolgps_torch.policy import (
     linearize_policy_jacobian,
     optimal_variance,
 )
+from lolgps_torch.types import DistillBatch
 
 F64 = torch.float64
 

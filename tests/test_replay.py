@@ -13,9 +13,9 @@ import h5py
 import pytest
 import torch
 
-from lolgps_torch.data import ConditionSamples, ReplayBuffer
+from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.types import LinearGaussian
+from lolgps_torch.types import ConditionSamples, LinearGaussian
 
 F64 = torch.float64
 
@@ -212,7 +212,8 @@ def test_sigkill_during_append_leaves_the_file_intact(
     script = textwrap.dedent(
         f"""
         import os, signal, h5py, torch
-        from lolgps_torch.data import ConditionSamples, ReplayBuffer
+        from lolgps_torch.data import ReplayBuffer
+        from lolgps_torch.types import ConditionSamples
         real = h5py.Group.create_dataset
         calls = []
         def killing(self, *args, **kwargs):

@@ -10,10 +10,10 @@ import pybullet_data
 import pytest
 import torch
 
-from lolgps_torch.cost.kinematics import PegKinematics
 from lolgps_torch.cost.l12 import CostConfig, PegCost, to_quadratic
-from lolgps_torch.sim.arm import load_arm
-from lolgps_torch.sim.placement import solve_ik
+from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.placement import solve_ik
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.sim.world import PegWorld
 from lolgps_torch.task import PegTask, TaskConfig

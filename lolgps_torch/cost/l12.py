@@ -26,7 +26,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from lolgps_torch.cost.kinematics import PegKinematics
+from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.state import StateLayout
 from lolgps_torch.types import QuadraticCost
 

@@ -8,11 +8,10 @@ from lolgps_torch.data.export import (
     export_minari,
     load_dataset,
 )
-from lolgps_torch.data.replay import ConditionRecord, ConditionSamples, ReplayBuffer
+from lolgps_torch.data.replay import ConditionRecord, ReplayBuffer
 
 __all__ = [
     "ConditionRecord",
-    "ConditionSamples",
     "ExportReport",
     "ExportedTrajectories",
     "ReplayBuffer",

@@ -32,13 +32,13 @@ import torch
 from torch import Tensor
 
 import lolgps_torch
-from lolgps_torch.cost.kinematics import PegKinematics
 from lolgps_torch.data.replay import FORMAT as REPLAY_FORMAT
 from lolgps_torch.data.replay import VERSION as REPLAY_VERSION
 from lolgps_torch.data.replay import ConditionRecord, ReplayBuffer, fsync_path
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.sim.arm import ArmSpec, load_arm
-from lolgps_torch.sim.placement import place_task
+from lolgps_torch.robot.arm import ArmSpec, load_arm
+from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.placement import place_task
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import TaskConfig, task_config_from_dict
 

@@ -23,9 +23,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from lolgps_torch.policy import DistillBatch, GaussianPolicy, policy_actor
+from lolgps_torch.policy import GaussianPolicy, policy_actor
 from lolgps_torch.task import PegTask
-from lolgps_torch.types import LinearGaussian
+from lolgps_torch.types import DistillBatch, LinearGaussian
 
 
 @dataclass(frozen=True)

@@ -29,12 +29,11 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.controllers import mix
-from lolgps_torch.data import ConditionSamples, ReplayBuffer
+from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.dynamics import GMMPrior, prior_from_config
 from lolgps_torch.lolgps.corrections import CorrectionConfig, Teacher, teacher_reference, visit
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
 from lolgps_torch.policy import (
-    DistillBatch,
     GaussianPolicy,
     PolicyConfig,
     distill,
@@ -44,7 +43,7 @@ from lolgps_torch.policy import (
 )
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
-from lolgps_torch.types import LinearGaussian, Trajectories
+from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian, Trajectories
 
 
 @dataclass(frozen=True)

@@ -12,34 +12,13 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
-
-
-class DistillBatch(NamedTuple):
-    """States of successful samples with the two controllers' action Gaussians at those states.
-
-    x: ``[M, dX]``; mean_cur, mean_pre: ``[M, dU]`` (``K_t x + k_t`` of p_cur and p_pre);
-    prec_cur, prec_pre: ``[M, dU, dU]`` (``cov_t^{-1}``); has_pre: ``[M]`` bool, false where no
-    p_pre existed (before the first S-step), where only ``KL(pi || p_cur)`` counts and
-    ``mean_pre`` and ``prec_pre`` are ignored (zeros by convention).
-    """
-
-    x: Tensor
-    mean_cur: Tensor
-    prec_cur: Tensor
-    mean_pre: Tensor
-    prec_pre: Tensor
-    has_pre: Tensor
-
-    @property
-    def M(self) -> int:
-        return int(self.x.shape[0])
+from lolgps_torch.types import DistillBatch
 
 
 def _check(batch: DistillBatch) -> None:

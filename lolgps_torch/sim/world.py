@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.sim.arm import ArmSpec
+from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.state import StateLayout
 

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from lolgps_torch.cost.kinematics import PegKinematics
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.sim.arm import ArmSpec
+from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.kinematics import PegKinematics
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ import torch
 
 from lolgps_torch.task import PegTask, TaskConfig
 
-DEFAULT_URDF = str(Path(__file__).resolve().parents[2] / "robots" / "kuka_peg.urdf")
+DEFAULT_URDF = str(Path(__file__).resolve().parents[1] / "robots" / "kuka_peg.urdf")
 
 
 class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -74,6 +74,4 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
         self.task.close()
 
 
-gym.register(
-    id="lolgps_torch/PegInsertion-v0", entry_point="lolgps_torch.sim.gym_env:PegInsertionEnv"
-)
+gym.register(id="lolgps_torch/PegInsertion-v0", entry_point="lolgps_torch.gym_env:PegInsertionEnv")

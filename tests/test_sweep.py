@@ -1,0 +1,370 @@
+"""The sweep: grid parsing and input checks, the mean ± sd aggregation on hand-made run folders
+(no Ray), and CI-sized sweeps on a local two-CPU Ray instance: two cells finish, a rerun skips
+them, and a cell that fails is reported while the other finishes."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import statistics
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from lolgps_torch import sweep
+from lolgps_torch.errors import LolgpsError
+
+ROOT = Path(__file__).resolve().parents[1]
+KUKA = str(ROOT / "robots" / "kuka_peg.urdf")
+TINY = ["--max-iterations", "2", "--success-phases", "1", "--distill-steps", "50", "--samples", "2"]
+
+
+def _sweep(tmp: Path, *argv: str) -> sweep.Sweep:
+    """A validated sweep from a command line, its --out under ``tmp`` unless given."""
+    own, extra = sweep.split_extra(argv)
+    if "--out" not in own:
+        own += ["--out", str(tmp / "out")]
+    return sweep.make_sweep(sweep.build_parser().parse_args(own), extra, str(ROOT / "scripts"))
+
+
+# -- the grid and input checks -------------------------------------------------------------
+
+
+def test_seeds_accept_ranges_lists_and_commas() -> None:
+    assert sweep.parse_seeds(["0-2"]) == [0, 1, 2]
+    assert sweep.parse_seeds(["0", "1", "5"]) == [0, 1, 5]
+    assert sweep.parse_seeds(["3,0-1", "1"]) == [3, 0, 1]
+
+
+@pytest.mark.parametrize("tokens", [["2-1"], ["x"], ["-1"], ["1-"], [""], []])
+def test_bad_seeds_are_user_errors(tokens: list[str]) -> None:
+    with pytest.raises(LolgpsError, match="--seeds"):
+        sweep.parse_seeds(tokens)
+
+
+def test_grid_is_methods_x_arms_x_streams_x_seeds_with_readable_names() -> None:
+    cells = sweep.make_grid([0, 1], ["naive", "lolgps"], ["/a/kuka.urdf", "b/ur5.urdf"], ["paper"])
+    assert len(cells) == 8
+    assert cells[0].name == "naive-kuka-paper-seed0"
+    assert cells[1].name == "naive-kuka-paper-seed1"
+    assert cells[-1].name == "lolgps-ur5-paper-seed1"
+    assert len({c.name for c in cells}) == 8
+
+
+@pytest.mark.parametrize(
+    ("methods", "urdfs", "streams", "message"),
+    [
+        (["gps"], ["a.urdf"], ["paper"], "unknown method 'gps'"),
+        (["lolgps"], ["a.urdf"], ["other"], "unknown stream 'other'"),
+        (["lolgps"], ["x/a.urdf", "y/a.urdf"], ["paper"], "different names"),
+    ],
+)
+def test_grid_rejects_unknown_methods_streams_and_clashing_arms(
+    methods: list[str], urdfs: list[str], streams: list[str], message: str
+) -> None:
+    with pytest.raises(LolgpsError, match=message):
+        sweep.make_grid([0], methods, urdfs, streams)
+
+
+def test_extra_flags_split_at_the_first_double_dash() -> None:
+    assert sweep.split_extra(["--seeds", "0", "--", "--samples", "2", "--", "x"]) == (
+        ["--seeds", "0"],
+        ["--samples", "2", "--", "x"],
+    )
+    assert sweep.split_extra(["--seeds", "0"]) == (["--seeds", "0"], [])
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--methods", "lolgps", "gps"], "unknown method"),
+        (["--urdf", "no/such.urdf"], "no such file"),
+        (["--seeds", "3-1"], "the range is empty"),
+        (["--stream", "other"], "invalid choice"),
+        (["--num-cpus", "0"], "must be >= 1"),
+        (["--address", "auto", "--num-cpus", "2"], "drop it with --address"),
+        (["--evaluate-args=--areas 2"], "needs --evaluate"),
+        (["--evaluate", "--evaluate-args=--workers 3"], "sets --workers"),
+        (["--", "--seed", "3"], "sets --seed"),
+        (["--", "--out=x"], "sets --out"),
+        (["--", "--res"], "sets --resume"),
+    ],
+)
+def test_bad_input_is_a_user_error_before_any_work(
+    tmp_path: Path, argv: list[str], message: str
+) -> None:
+    with pytest.raises(LolgpsError, match=message):
+        _sweep(tmp_path, *argv)
+    assert not (tmp_path / "out").exists()
+
+
+def test_conditions_file_and_out_folder_are_checked(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"not": "a list"}')
+    with pytest.raises(LolgpsError, match="--conditions"):
+        _sweep(tmp_path, "--conditions", str(bad))
+    with pytest.raises(LolgpsError, match="--conditions"):
+        _sweep(tmp_path, "--conditions", str(tmp_path / "missing.json"))
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(LolgpsError, match="not a folder"):
+        _sweep(tmp_path, "--out", str(blocker))
+    with pytest.raises(LolgpsError, match="cannot write"):
+        _sweep(tmp_path, "--out", str(blocker / "below"))
+
+
+def test_a_valid_sweep_resolves_paths_and_builds_commands(tmp_path: Path) -> None:
+    conditions = tmp_path / "c.json"
+    conditions.write_text("[[0.02, 0.02]]")
+    s = _sweep(tmp_path, "--seeds", "0-1", "--conditions", str(conditions), "--", *TINY)
+    assert [c.name for c in s.cells] == [
+        "lolgps-kuka_peg-paper-seed0",
+        "lolgps-kuka_peg-paper-seed1",
+    ]
+    assert Path(s.plan.out).is_absolute() and Path(s.cells[0].urdf).is_absolute()
+    command = sweep.stream_command(s.cells[1], s.plan, resume=True)
+    assert command[0] == sys.executable and command[1].endswith("run_stream.py")
+    out = command[command.index("--out") + 1]
+    assert out == str(Path(s.plan.out) / "lolgps-kuka_peg-paper-seed1")
+    assert command[-len(TINY) - 1 : -1] == TINY and command[-1] == "--resume"
+    assert "--stream" not in command  # the paper stream is run_stream's default
+    assert "--resume" not in sweep.stream_command(s.cells[0], s.plan, resume=False)
+    evaluate = sweep.evaluate_command(s.cells[0], s.plan)
+    assert evaluate[-4:] == ["--run", str(Path(s.plan.out) / s.cells[0].name), "--workers", "1"]
+
+
+def test_cell_state_follows_the_files_in_the_folder(tmp_path: Path) -> None:
+    assert sweep.cell_state(tmp_path, evaluate=False) == "new"
+    (tmp_path / "config.json").write_text("{}")
+    assert sweep.cell_state(tmp_path, evaluate=False) == "resume"
+    (tmp_path / "summary.json").write_text("{}")
+    assert sweep.cell_state(tmp_path, evaluate=False) == "done"
+    assert sweep.cell_state(tmp_path, evaluate=True) == "evaluate"
+    (tmp_path / "eval.json").write_text("{}")
+    assert sweep.cell_state(tmp_path, evaluate=True) == "done"
+
+
+def test_error_line_is_the_last_error_line() -> None:
+    stderr = "warning: x\nerror: first\nTraceback\nerror: the reason\nmore\n"
+    assert sweep.error_line(stderr, 2) == "error: the reason"
+    assert sweep.error_line("usage: run_stream.py\nrun_stream.py: error: bad flag\n", 2) == (
+        "run_stream.py: error: bad flag"
+    )
+    assert sweep.error_line("Traceback\n  File x\nValueError: boom\n", 1) == "ValueError: boom"
+    assert sweep.error_line("", -9) == "killed by signal 9"
+    assert sweep.error_line("", 3) == "exit status 3"
+
+
+def test_without_ray_the_error_names_the_install_command(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    with pytest.raises(LolgpsError, match=r"pip install -e '\.\[ray\]'"):
+        sweep.main(["--out", str(tmp_path / "out")])
+
+
+def test_script_prints_one_error_line_and_exits_2(tmp_path: Path) -> None:
+    cmd = [sys.executable, str(ROOT / "scripts" / "sweep.py"), "--seeds", "x"]
+    proc = subprocess.run(cmd + ["--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("error: --seeds 'x'") and proc.stderr.count("\n") == 1
+
+
+def test_progress_counts_cells_and_estimates_the_rest() -> None:
+    stream = io.StringIO()
+    progress = sweep.Progress(total=4, done=1, slots=2, stream=stream)
+    cell = sweep.Cell("lolgps", "/a/kuka.urdf", "paper", 0)
+    progress.end(sweep.Outcome(cell, "finished", wall_time=30.0), pending=2)
+    progress.end(sweep.Outcome(cell, "failed", "error: boom"), pending=1)
+    lines = stream.getvalue().splitlines()
+    assert lines[0].startswith("[2/4 done, 2 running, 0 failed, ETA ")
+    assert lines[0].endswith("lolgps-kuka-paper-seed0 finished in 30s")
+    assert lines[1].startswith("[2/4 done, 1 running, 1 failed, ETA ")
+    assert lines[1].endswith("FAILED: error: boom")
+    assert [sweep.format_duration(s) for s in (42, 185, 3720, None)] == [
+        "42s",
+        "3m05s",
+        "1h02m",
+        "?",
+    ]
+
+
+# -- aggregation on hand-made run folders --------------------------------------------------
+
+
+def _fake_run(
+    folder: Path, success: list[bool], iterations: list[int], samples: int, **extra: Any
+) -> None:
+    """A finished run folder: summary.json, config.json, and optionally eval.json and the
+    sweep's wall time (``evaluation`` = (average final success, forgetting per area),
+    ``wall_time``)."""
+    folder.mkdir(parents=True)
+    entries = [
+        {"condition": c, "offset": [0.0, 0.0], "iterations": n, "first_success_iteration": None,
+         "policy_final_distance_end": math.nan, "policy_success_end": ok}
+        for c, (ok, n) in enumerate(zip(success, iterations, strict=True))
+    ]  # fmt: skip
+    (folder / "summary.json").write_text(json.dumps({"conditions": entries}))
+    (folder / "config.json").write_text(json.dumps({"stream": {"local": {"samples": samples}}}))
+    if "evaluation" in extra:
+        average, per_area = extra["evaluation"]
+        defined = [v for v in per_area if v is not None]
+        forgetting = {"per_area": per_area, "mean": statistics.fmean(defined)}
+        metrics = {"average_final_success": average, "forgetting": {"success_rate": forgetting}}
+        (folder / "eval.json").write_text(json.dumps({"metrics": metrics}))
+    if "wall_time" in extra:
+        (folder / sweep.CELL_FILE).write_text(json.dumps({"wall_time": extra["wall_time"]}))
+
+
+@pytest.fixture
+def fake_sweep(tmp_path: Path) -> sweep.Sweep:
+    """lolgps seeds 0-2 (seed 2 failed: no summary) and naive seed 0, on one arm."""
+    out = tmp_path / "sweep"
+    cells = sweep.make_grid([0, 1, 2], ["lolgps", "naive"], ["/r/kuka.urdf"], ["paper"])
+    _fake_run(out / "lolgps-kuka-paper-seed0", [True, False], [3, 5], 5,
+              evaluation=(0.8, [0.1, None, 0.0]), wall_time=100.0)  # fmt: skip
+    _fake_run(out / "lolgps-kuka-paper-seed1", [True, True], [2, 2], 5,
+              evaluation=(0.6, [0.3, None, 0.2]), wall_time=140.0)  # fmt: skip
+    (out / "lolgps-kuka-paper-seed2").mkdir()
+    (out / "lolgps-kuka-paper-seed2" / "config.json").write_text("{}")
+    _fake_run(out / "naive-kuka-paper-seed0", [False, True, False, False], [4, 4, 4, 4], 2)
+    plan = sweep.Plan(scripts="s", out=str(out), cwd=".", conditions=None, evaluate=True)
+    return sweep.Sweep(cells, plan, None, 2)
+
+
+def test_cell_metrics_read_the_run_files(fake_sweep: sweep.Sweep) -> None:
+    row = sweep.cell_metrics(Path(fake_sweep.plan.out) / "lolgps-kuka-paper-seed0")
+    assert row == {
+        "train_success": 0.5,
+        "test_success": 0.8,
+        "forgetting_area0": 0.1,
+        "forgetting_areas": pytest.approx(0.05),
+        "rollouts": 40.0,  # (3 + 5) iterations x 5 samples
+        "wall_time": 100.0,
+    }
+    assert sweep.cell_metrics(Path(fake_sweep.plan.out) / "lolgps-kuka-paper-seed2") is None
+
+
+def test_aggregate_is_mean_and_sample_sd_over_finished_seeds(fake_sweep: sweep.Sweep) -> None:
+    lolgps, naive = sweep.aggregate(fake_sweep.cells, Path(fake_sweep.plan.out))
+    assert (lolgps["method"], lolgps["arm"], lolgps["stream"], lolgps["seeds"]) == (
+        "lolgps", "kuka", "paper", 2
+    )  # fmt: skip
+    assert lolgps["train_success_mean"] == pytest.approx(0.75)
+    assert lolgps["train_success_sd"] == pytest.approx(math.sqrt(0.125))  # |1 - 0.5| / sqrt(2)
+    assert lolgps["test_success_mean"] == pytest.approx(0.7)
+    assert lolgps["test_success_sd"] == pytest.approx(0.2 / math.sqrt(2))
+    assert lolgps["forgetting_area0_mean"] == pytest.approx(0.2)
+    assert lolgps["rollouts_mean"] == pytest.approx(30.0)  # 40 and 20
+    assert lolgps["rollouts_sd"] == pytest.approx(20.0 / math.sqrt(2))
+    assert lolgps["wall_time_mean"] == pytest.approx(120.0)
+    assert naive["seeds"] == 1 and naive["train_success_mean"] == 0.25
+    assert naive["train_success_sd"] is None  # undefined for one seed
+    assert naive["rollouts_mean"] == 32.0
+    assert naive["test_success_mean"] is None and naive["test_success_n"] == 0
+
+
+def test_mean_sd_skips_missing_and_nan_values() -> None:
+    assert sweep.mean_sd([1.0, None, math.nan, 3.0]) == (2.0, pytest.approx(math.sqrt(2)), 2)
+    assert sweep.mean_sd([None]) == (None, None, 0)
+    assert sweep.format_mean_sd(0.5, 0.25, ".2f") == "0.50 ± 0.25"
+    assert sweep.format_mean_sd(0.1, 0.05, "+.2f") == "+0.10 ± 0.05"
+    assert sweep.format_mean_sd(3.0, None, ".0f") == "3"
+    assert sweep.format_mean_sd(None, None, ".2f") == "-"
+
+
+def test_summaries_are_written_as_markdown_csv_and_figure(fake_sweep: sweep.Sweep) -> None:
+    failed = [sweep.Outcome(fake_sweep.cells[2], "failed", "error: boom")]
+    written = sweep.write_summaries(fake_sweep, failed)
+    out = Path(fake_sweep.plan.out)
+    assert written == [out / "summary.md", out / "summary.csv", out / "summary.png"]
+    markdown = (out / "summary.md").read_text()
+    assert "| lolgps | kuka | paper | 2 | 0.75 ± 0.35 | 0.70 ± 0.14 |" in markdown
+    assert "| naive | kuka | paper | 1 | 0.25 | - |" in markdown
+    assert "`lolgps-kuka-paper-seed2`: error: boom" in markdown
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [r["method"] for r in rows] == ["lolgps", "naive"]
+    assert float(rows[0]["rollouts_mean"]) == 30.0 and rows[1]["train_success_sd"] == ""
+    assert (out / "summary.png").stat().st_size > 0
+
+
+# -- sweeps on a local Ray instance -----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def local_ray() -> Iterator[None]:
+    """A local Ray instance with two CPUs for this module's sweeps, shut down at the end."""
+    ray = pytest.importorskip("ray")
+    import logging
+
+    ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.ERROR)
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def conditions(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One training position: the smallest stream."""
+    path = tmp_path_factory.mktemp("conditions") / "one.json"
+    path.write_text("[[0.02, 0.02]]")
+    return path
+
+
+def test_sweep_runs_two_cells_then_skips_them(
+    local_ray: None, conditions: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["--seeds", "0-1", "--urdf", KUKA, "--conditions", str(conditions)]
+    argv += ["--out", str(tmp_path / "sweep"), "--", *TINY]
+    assert sweep.main(argv) == 0
+    out = tmp_path / "sweep"
+    names = ["lolgps-kuka_peg-paper-seed0", "lolgps-kuka_peg-paper-seed1"]
+    mtimes = [(out / n / "summary.json").stat().st_mtime_ns for n in names]
+    first = capsys.readouterr().out
+    assert (
+        "0 finished before (skipped), 0 to resume, 0 to evaluate, 2 new" in first
+        and "[2/2 done, 0 running, 0 failed" in first
+    )
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert len(rows) == 1 and rows[0]["seeds"] == "2"
+    assert float(rows[0]["rollouts_mean"]) == 4.0  # 2 iterations x 2 samples
+    assert "| lolgps | kuka_peg | paper | 2 |" in (out / "summary.md").read_text()
+    recorded = json.loads((out / "sweep.json").read_text())
+    assert [c["status"] for c in recorded["cells"]] == ["finished", "finished"]
+
+    assert sweep.main(argv) == 0
+    assert (
+        "2 finished before (skipped), 0 to resume, 0 to evaluate, 0 new" in capsys.readouterr().out
+    )
+    assert [(out / n / "summary.json").stat().st_mtime_ns for n in names] == mtimes
+    recorded = json.loads((out / "sweep.json").read_text())
+    assert [c["status"] for c in recorded["cells"]] == ["skipped", "skipped"]
+
+
+def test_a_failing_cell_is_retried_and_reported_while_the_other_finishes(
+    local_ray: None, conditions: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    broken = tmp_path / "broken_arm.urdf"
+    broken.write_text("<robot name='broken'>")  # exists for the grid check; run_stream rejects it
+    out = tmp_path / "sweep"
+    argv = ["--urdf", KUKA, str(broken), "--conditions", str(conditions), "--out", str(out)]
+    assert sweep.main([*argv, "--", *TINY]) == 1
+    captured = capsys.readouterr()
+    assert "lolgps-broken_arm-paper-seed0 failed (error: " in captured.out  # the first attempt
+    assert "lolgps-broken_arm-paper-seed0 FAILED: error: " in captured.out
+    assert "lolgps-broken_arm-paper-seed0: error: " in captured.err
+    assert (out / "lolgps-kuka_peg-paper-seed0" / "summary.json").is_file()
+    log = (out / "lolgps-broken_arm-paper-seed0" / sweep.LOG_FILE).read_text()
+    assert log.count("$ ") == 2  # tried twice
+    statuses = {c["name"]: c for c in json.loads((out / "sweep.json").read_text())["cells"]}
+    assert statuses["lolgps-kuka_peg-paper-seed0"]["status"] == "finished"
+    assert statuses["lolgps-broken_arm-paper-seed0"]["status"] == "failed"
+    assert statuses["lolgps-broken_arm-paper-seed0"]["error"].startswith("error: ")
+    assert "`lolgps-broken_arm-paper-seed0`: error: " in (out / "summary.md").read_text()
