@@ -1,0 +1,93 @@
+"""Typed records of a run, written as JSON with these field names as keys.
+
+:class:`IterationRecord` and :class:`DistillRecord` are the lines of ``metrics.jsonl``;
+:class:`ConditionSummary` is a condition's entry in ``summary.json`` (and its checkpoint's
+``entry.json``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Literal
+
+from lolgps_torch.errors import LolgpsError
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """One iteration at one condition: its samples, its C-step and its phase times (s)."""
+
+    condition: int
+    iteration: int
+    alpha: float
+    mean_cost: float
+    mean_distance: float
+    best_distance: float
+    success_rate: float
+    epsilon: float
+    eta: float
+    kl: float
+    time_sample: float
+    time_fit: float
+    time_cstep: float
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class DistillRecord:
+    """One S-step: after ``condition`` (the stream) or after ``iteration`` (batch GPS)."""
+
+    condition: int
+    time_distill: float
+    distill_rows: int
+    iteration: int | None = None
+    event: Literal["distilled"] = "distilled"
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+@dataclass
+class ConditionSummary:
+    """What was learnt at one condition.
+
+    :param iterations: iterations taken (rollouts = iterations x samples).
+    :param first_success_iteration: the first iteration with a successful sample, if any.
+    :param successful_samples: rollouts in the condition's D_g.
+    :param local_final_distance: p_cur's noiseless final distance (m) at the end.
+    :param labels_from_iteration: the iteration whose p_cur labels D_g.
+    :param policy_final_distance_after: the global policy's noiseless final distance (m)
+        right after the condition's S-step; ``..._end`` after the whole stream (set last).
+    :param distill_loss: the S-step's final loss (None without an S-step).
+    """
+
+    condition: int
+    offset: list[float]
+    iterations: int
+    first_success_iteration: int | None
+    successful_samples: int
+    local_final_distance: float
+    local_success: bool
+    labels_from_iteration: int
+    policy_final_distance_after: float
+    policy_success_after: bool
+    distill_loss: float | None
+    policy_final_distance_end: float | None = None
+    policy_success_end: bool | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        data = asdict(self)
+        if self.policy_final_distance_end is None:  # not final yet: as in entry.json
+            del data["policy_final_distance_end"], data["policy_success_end"]
+        return data
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> ConditionSummary:
+        """Rebuild an entry read from disk; a missing or unknown key is a :class:`LolgpsError`."""
+        names = {f.name for f in fields(cls)}
+        try:
+            return cls(**{k: v for k, v in data.items() if k in names})
+        except TypeError as error:
+            raise LolgpsError(f"corrupt summary entry: {error}") from None
