@@ -17,7 +17,6 @@ from lolgps_torch.trajopt import (
     kl_bound,
     laplace_cost,
 )
-from lolgps_torch.trajopt.mixture import through_mixture
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost
 
 DT = torch.float64
@@ -232,33 +231,3 @@ def test_config_rejects_bad_values() -> None:
         CStepConfig(eta_min=0.0)
     with pytest.raises(LolgpsError):
         CStepConfig(step_mult_init=10.0)
-
-
-@pytest.mark.parametrize("alpha", [0.0, 0.3, 0.7])
-def test_planning_through_the_mixture_recovers_the_direct_optimum(alpha: float) -> None:
-    """u = alpha (K_pre x + k_pre) + (1 - alpha) v is a bijection between u and v at each x, so
-    the optimal v-controller mixed with p_pre is the optimal u-controller."""
-    cost, dynamics, p_pre = random_problem(seed=3)
-    K, k = riccati(cost, dynamics)
-    K_v, k_v = riccati(*through_mixture(cost, dynamics, p_pre, alpha))
-    torch.testing.assert_close(alpha * p_pre.K + (1 - alpha) * K_v, K, rtol=0.0, atol=1e-9)
-    torch.testing.assert_close(alpha * p_pre.k + (1 - alpha) * k_v, k, rtol=0.0, atol=1e-9)
-
-
-def test_mixture_cost_is_the_same_cost() -> None:
-    cost, dynamics, p_pre = random_problem(seed=4)
-    alpha, t = 0.4, 5
-    g = torch.Generator().manual_seed(0)
-    x = torch.randn(6, dtype=DT, generator=g)
-    v = torch.randn(3, dtype=DT, generator=g)
-    u = alpha * (p_pre.K[t] @ x + p_pre.k[t]) + (1 - alpha) * v
-    mixed, mixed_dynamics = through_mixture(cost, dynamics, p_pre, alpha)
-
-    def value(c: QuadraticCost, y: Tensor) -> Tensor:
-        return 0.5 * y @ c.C[t] @ y + y @ c.c[t] + c.cc[t]
-
-    torch.testing.assert_close(value(mixed, torch.cat([x, v])), value(cost, torch.cat([x, u])))
-    torch.testing.assert_close(
-        mixed_dynamics.F[t] @ torch.cat([x, v]) + mixed_dynamics.f[t],
-        dynamics.F[t] @ torch.cat([x, u]) + dynamics.f[t],
-    )

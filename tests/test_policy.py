@@ -16,7 +16,6 @@ from lolgps_torch.policy import (
     distill,
     kl_loss,
     linearize_policy,
-    linearize_policy_jacobian,
     optimal_variance,
 )
 from lolgps_torch.types import DistillBatch
@@ -261,35 +260,6 @@ def test_linearize_follows_a_nonlinear_policy_over_time() -> None:
     w = torch.tensor([1.0, -0.5], dtype=F64)
     jacobian = (1 - torch.tanh(centres @ w) ** 2)[:, None, None] * w  # [T, 1, 2]
     assert torch.allclose(p_pre.K, jacobian, atol=0.01)
-
-
-def test_jacobian_linearisation_recovers_a_linear_policy() -> None:
-    policy, K, k = linear_policy(5, 3, seed=0)
-    x = torch.randn(4, 6, 5, dtype=F64, generator=torch.Generator().manual_seed(1))
-    p_pre = linearize_policy_jacobian(policy, x)
-    torch.testing.assert_close(p_pre.K, K.expand(6, -1, -1), atol=1e-12, rtol=0)
-    torch.testing.assert_close(p_pre.k, k.expand(6, -1), atol=1e-12, rtol=0)
-    torch.testing.assert_close(p_pre.cov, policy.covariance().expand(6, -1, -1))
-
-
-def test_jacobian_linearisation_matches_finite_differences() -> None:
-    """One sample: K_t is the MLP's Jacobian at x_t (checked by central differences), the
-    residual spread is zero and k_t puts the line through mu(x_t)."""
-    policy = GaussianPolicy(4, 2, PolicyConfig(hidden_sizes=(16, 16), seed=3))
-    policy.set_variance(torch.tensor([0.2, 0.5], dtype=F64))
-    x = torch.randn(1, 3, 4, dtype=F64, generator=torch.Generator().manual_seed(4))
-    p_pre = linearize_policy_jacobian(policy, x)
-    h = 1e-6
-    with torch.no_grad():
-        for t in range(3):
-            columns = []
-            for i in range(4):
-                step = torch.zeros(4, dtype=F64)
-                step[i] = h
-                columns.append((policy(x[0, t] + step) - policy(x[0, t] - step)) / (2 * h))
-            torch.testing.assert_close(p_pre.K[t], torch.stack(columns, -1), atol=1e-7, rtol=0)
-        torch.testing.assert_close(p_pre.mean_action(x), policy(x), atol=1e-12, rtol=0)
-    torch.testing.assert_close(p_pre.cov, policy.covariance().expand(3, -1, -1))
 
 
 def test_save_load_round_trip(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -27,6 +27,7 @@ class IterationRecord:
     epsilon: float
     eta: float
     kl: float
+    step_mult: float
     time_sample: float
     time_fit: float
     time_cstep: float
@@ -61,6 +62,8 @@ class ConditionSummary:
     :param policy_final_distance_after: the global policy's noiseless final distance (m)
         right after the condition's S-step; ``..._end`` after the whole stream (set last).
     :param distill_loss: the S-step's final loss (None without an S-step).
+    :param failure: why local learning stopped early on a numerical failure (None: it did
+        not); the condition's D_g then holds the successes before it.
     """
 
     condition: int
@@ -74,6 +77,7 @@ class ConditionSummary:
     policy_final_distance_after: float
     policy_success_after: bool
     distill_loss: float | None
+    failure: str | None = None
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.dynamics.prior import GMMPrior, NIWPrior
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.types import LinearDynamics
 
 
@@ -140,7 +140,7 @@ class DynamicsFitter:
                 f"{tuple(x.shape)} and {tuple(u.shape)}"
             )
         if not bool(torch.isfinite(x).all() and torch.isfinite(u).all()):
-            raise LolgpsError("states or actions contain inf or NaN; cannot fit dynamics")
+            raise NumericalError("states or actions contain inf or NaN; cannot fit dynamics")
         X = torch.cat([x[:, :-1], u[:, :-1]], dim=-1)  # [N, T-1, dX+dU]
         Y = x[:, 1:]  # [N, T-1, dX]
         prior = None

@@ -13,13 +13,16 @@ from the predicted against the actual improvement of the expected cost.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import torch
+from torch import Tensor
 
 from lolgps_torch.controllers import hold_controller, smoothed_noise
 from lolgps_torch.cost.l12 import to_quadratic
+from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
@@ -29,7 +32,6 @@ from lolgps_torch.trajopt import (
     c_step,
     kl_bound,
     laplace_cost,
-    through_mixture,
 )
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost, Trajectories
 
@@ -62,19 +64,6 @@ class Fit(NamedTuple):
     controller: LinearGaussian
     dynamics: LinearDynamics
     cost: QuadraticCost
-
-
-class Iteration(NamedTuple):
-    """One iteration's samples and numbers (times in seconds)."""
-
-    samples: Trajectories
-    epsilon: float
-    eta: float
-    kl: float
-    step_mult: float
-    time_sample: float
-    time_fit: float
-    time_cstep: float
 
 
 def initial_controller(task: PegTask, config: LocalConfig) -> LinearGaussian:
@@ -133,34 +122,57 @@ class LocalLearner:
         self.previous = fit
         return fit
 
-    def improve(
-        self,
-        fit: Fit,
-        p_bar: LinearGaussian,
-        mixture: tuple[LinearGaussian, float] | None = None,
-    ) -> tuple[float, float, float]:
-        """The C-step against ``p_bar``; returns (epsilon, eta, KL).
-
-        :param mixture: ``(p_pre, alpha)`` when the samples came from
-            ``p_act = alpha p_pre + (1 - alpha) p_cur``: the C-step then plans p_cur's share of
-            that mixture (:func:`lolgps_torch.trajopt.through_mixture`).
-        """
+    def improve(self, fit: Fit, p_bar: LinearGaussian) -> tuple[float, float, float]:
+        """The C-step against ``p_bar``; returns (epsilon, eta, KL)."""
         epsilon = kl_bound(self.step_mult, self.task.T, self.config.cstep)
-        cost, dynamics = fit.cost, fit.dynamics
-        if mixture is not None:
-            cost, dynamics = through_mixture(cost, dynamics, *mixture)
-        result = c_step(cost, dynamics, p_bar, epsilon, self.config.cstep)
+        result = c_step(fit.cost, fit.dynamics, p_bar, epsilon, self.config.cstep)
         self.p_cur = result.policy
         return epsilon, float(result.eta), float(result.kl.sum())
 
-    def iteration(self) -> Iteration:
-        """Sample p_cur, fit, and take the C-step against the previous p_cur (trust region)."""
-        p_act = self.p_cur
-        t0 = time.perf_counter()
-        samples = self.sample(p_act)
-        t1 = time.perf_counter()
-        fit = self.fit(p_act, samples)
-        t2 = time.perf_counter()
-        epsilon, eta, kl = self.improve(fit, self.p_cur)
-        t3 = time.perf_counter()
-        return Iteration(samples, epsilon, eta, kl, self.step_mult, t1 - t0, t2 - t1, t3 - t2)
+
+Linearizer = Callable[[Tensor], LinearGaussian]
+
+
+def iterate(
+    learner: LocalLearner,
+    p_act: LinearGaussian,
+    linearize: Linearizer | None,
+    anchor_to_pre: bool,
+    where: tuple[int, int, float],
+) -> tuple[Trajectories, LinearGaussian | None, IterationRecord]:
+    """One iteration of the trajectory-centric loop, shared by the stream, batch GPS and the
+    single-condition learner: sample ``p_act``, fit the dynamics, linearise the global policy
+    into p_pre around the new samples (when ``linearize`` is given) and take the C-step
+    against p_pre (``anchor_to_pre``) or against the previous p_cur.
+
+    :param where: (condition, iteration, alpha of p_act) for the record.
+    :returns: the samples, the new p_pre (None without ``linearize``) and the iteration's record.
+    """
+    t0 = time.perf_counter()
+    samples = learner.sample(p_act)
+    t1 = time.perf_counter()
+    fit = learner.fit(p_act, samples)
+    p_pre = linearize(samples.x) if linearize is not None else None
+    t2 = time.perf_counter()
+    epsilon, eta, kl = learner.improve(
+        fit, p_pre if p_pre is not None and anchor_to_pre else learner.p_cur
+    )
+    t3 = time.perf_counter()
+    condition, iteration, alpha = where
+    record = IterationRecord(
+        condition=condition,
+        iteration=iteration,
+        alpha=alpha,
+        mean_cost=float(samples.cost.sum(1).mean()),
+        mean_distance=float(samples.final_distance.mean()),
+        best_distance=float(samples.final_distance.min()),
+        success_rate=float(samples.success.double().mean()),
+        epsilon=epsilon,
+        eta=eta,
+        kl=kl,
+        step_mult=learner.step_mult,
+        time_sample=t1 - t0,
+        time_fit=t2 - t1,
+        time_cstep=t3 - t2,
+    )
+    return samples, p_pre, record

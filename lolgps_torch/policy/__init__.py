@@ -2,7 +2,7 @@
 S-step."""
 
 from lolgps_torch.policy.actor import policy_actor
-from lolgps_torch.policy.linearize import linearize_policy, linearize_policy_jacobian
+from lolgps_torch.policy.linearize import linearize_policy
 from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
 from lolgps_torch.policy.sstep import distill, kl_loss, optimal_variance
 
@@ -12,7 +12,6 @@ __all__ = [
     "distill",
     "kl_loss",
     "linearize_policy",
-    "linearize_policy_jacobian",
     "optimal_variance",
     "policy_actor",
 ]

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.state import StateLayout
@@ -41,6 +41,8 @@ class WorldConfig:
         (b the URDF joint damping, dt the physics step) get rotor-like inertia added, since
         PyBullet's explicit joint damping is unstable there (pybullet_data's xArm, damping 1,
         drifted 7 rad in 5 s with zero action before this).
+    :param max_joint_speed: joint speed (rad/s) beyond which a state counts as a simulator
+        blow-up (PyBullet itself caps joint speeds at 100 rad/s by default).
     """
 
     dt: float = 0.05
@@ -55,6 +57,7 @@ class WorldConfig:
     friction: float = 0.2
     success_threshold: float = 0.06
     damping_margin: float = 1.0
+    max_joint_speed: float = 100.0
 
 
 class PegWorld:
@@ -219,6 +222,11 @@ class PegWorld:
         self._q_all = [s[0] for s in states]
         q = np.array([states[i][0] for i in self.actuated_in_movable])
         qd = np.array([states[i][1] for i in self.actuated_in_movable])
+        if not (np.isfinite(q).all() and np.abs(qd).max() <= self.config.max_joint_speed):
+            raise NumericalError(
+                f"the simulation blew up: joint speed {np.abs(qd).max():.3g} rad/s "
+                f"(bound {self.config.max_joint_speed:g})"
+            )
         pts = (self.points() - self.targets).reshape(6)
         vel = (pts - self._prev_points) / self.config.dt
         self._points = pts
@@ -229,7 +237,7 @@ class PegWorld:
         from the state the last :meth:`reset`, :meth:`observe` or :meth:`step` returned."""
         c = self.client
         if not np.all(np.isfinite(u)):
-            raise LolgpsError("non-finite action: the controller produced NaN or inf torques")
+            raise NumericalError("non-finite action: the controller produced NaN or inf torques")
         zeros = [0.0] * len(self.movable)
         g = np.asarray(
             pb.calculateInverseDynamics(self.body, self._q_all, zeros, zeros, physicsClientId=c)

@@ -3,7 +3,6 @@
 from lolgps_torch.trajopt.config import CStepConfig
 from lolgps_torch.trajopt.cstep import CStepResult, c_step
 from lolgps_torch.trajopt.lqr import BackwardPassResult, backward_pass
-from lolgps_torch.trajopt.mixture import through_mixture
 from lolgps_torch.trajopt.step_size import adapt_step_mult, kl_bound, laplace_cost
 
 __all__ = [
@@ -15,5 +14,4 @@ __all__ = [
     "c_step",
     "kl_bound",
     "laplace_cost",
-    "through_mixture",
 ]

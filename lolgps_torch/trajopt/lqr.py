@@ -24,7 +24,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.errors import NumericalError
 from lolgps_torch.trajopt.config import CStepConfig
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost
 
@@ -143,7 +143,7 @@ def solve_with_retry(
         trial_ok = trial_ok.view(trial.shape)
         found = trial_ok.any(1)
         if bool((~found & (trial[:, -1] >= eta_max)).any()):
-            raise LolgpsError(
+            raise NumericalError(
                 f"Quu is not positive definite even at eta = {eta_max:g}: the cost is not "
                 "convex enough in u for this p_bar (check the action weights and p_bar.cov)"
             )

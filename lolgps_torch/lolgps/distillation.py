@@ -1,0 +1,148 @@
+"""D_g and the S-step over it (docs/ALGORITHM.md sections 7-8).
+
+A condition's D_g is its successful rollouts, each state labelled with the action means and
+precisions of the controllers (p_cur, p_pre) that :func:`label_source` picks. The S-step fits
+the global policy to
+
+    sum over conditions m, rows (x, t) of D_g(m):  KL(pi(.|x) || p_cur,t(.|x))
+                                                 + lambda KL(pi(.|x) || p_pre,t(.|x))   (eq. 8)
+
+on the new conditions' D_g, ``augment`` kinematically consistent perturbed copies of their
+states (labelled by the same linear-Gaussian controllers, which are defined at any state), and
+the earlier conditions' D_g from the replay.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill
+from lolgps_torch.task import PegTask
+from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian, Trajectories
+
+
+class Labels(NamedTuple):
+    """The controllers whose means and precisions label a condition's D_g, and the iteration
+    at which that p_cur acts."""
+
+    p_cur: LinearGaussian
+    p_pre: LinearGaussian | None
+    iteration: int
+
+
+class Labelled(NamedTuple):
+    """A condition's hole offset, D_g and the labels it was made with."""
+
+    offset: tuple[float, float]
+    data: ConditionSamples
+    labels: Labels
+
+
+def label_source(final: Labels, final_succeeds: bool, sampled: Labels | None) -> Labels:
+    """The final p_cur, unless its own noiseless rollout misses; then the p_cur whose samples
+    last succeeded (``sampled``), so that the policy never imitates a controller known to
+    fail. With no such p_cur, the final one."""
+    return final if final_succeeds or sampled is None else sampled
+
+
+def controller_targets(p: LinearGaussian, x: Tensor) -> tuple[Tensor, Tensor]:
+    """Means ``[M, T, dU]`` and precisions ``[M, T, dU, dU]`` of ``p`` at states ``[M, T, dX]``."""
+    mean = p.mean_action(x)
+    prec = p.precision().expand(x.shape[0], *p.cov.shape)
+    return mean, prec
+
+
+def targets(x: Tensor, labels: Labels) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Means and precisions of p_cur and p_pre at states ``x: [M, T, dX]`` (zeros and
+    ``has_pre`` false without p_pre)."""
+    with torch.no_grad():
+        mean_cur, prec_cur = controller_targets(labels.p_cur, x)
+        if labels.p_pre is not None:
+            mean_pre, prec_pre = controller_targets(labels.p_pre, x)
+        else:
+            mean_pre, prec_pre = torch.zeros_like(mean_cur), torch.zeros_like(prec_cur)
+    has_pre = torch.full((x.shape[0],), labels.p_pre is not None, dtype=torch.bool, device=x.device)
+    return mean_cur, prec_cur, mean_pre, prec_pre, has_pre
+
+
+def label(task: PegTask, kept: list[Trajectories], labels: Labels) -> ConditionSamples:
+    """D_g: the successful rollouts ``kept`` with the labels' action means and precisions at
+    their states (one coherent feedback law per condition; M may be 0)."""
+    if kept:
+        x, u, cost, final = (
+            torch.cat([getattr(k, name) for k in kept])
+            for name in ("x", "u", "cost", "final_distance")
+        )
+    else:
+        x = torch.zeros(0, task.T, task.layout.dX, dtype=torch.float64, device=task.device)
+        u = torch.zeros(0, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
+        cost, final = x.new_zeros(0, task.T), x.new_zeros(0)
+    return ConditionSamples(x, u, cost, final, *targets(x, labels))
+
+
+def consistent_states(task: PegTask, x: Tensor, offset: tuple[float, float]) -> Tensor:
+    """States ``[..., dX]`` with their points and point velocities recomputed from q and
+    q-dot: ``p(q) - p*`` and ``J(q) q-dot``."""
+    lay = task.layout
+    points, jac = task.kinematics.points_and_jacobian(x[..., lay.q])
+    out = x.clone()
+    out[..., lay.points] = (points - task.targets([offset])[0]).flatten(-2)
+    out[..., lay.point_velocities] = (jac @ x[..., lay.qd].unsqueeze(-1)).squeeze(-1)
+    return out
+
+
+class Distiller:
+    """The S-step with replay: owns nothing but the settings and the replay it reads.
+
+    :param augment: perturbed copies of each new D_g state.
+    :param augment_scale: their size, in per-step standard deviations of D_g's states (q and
+        q-dot are perturbed; the points and their velocities follow by kinematics).
+    :param replay: the earlier conditions' D_g, or None to distil the new ones only.
+    """
+
+    def __init__(
+        self,
+        task: PegTask,
+        config: PolicyConfig,
+        augment: int,
+        augment_scale: float,
+        replay: ReplayBuffer | None,
+    ) -> None:
+        self.task, self.config, self.replay = task, config, replay
+        self.augment, self.augment_scale = augment, augment_scale
+
+    def __call__(self, policy: GaussianPolicy, new: list[Labelled], seed: int) -> list[float]:
+        """Fit ``policy`` on the ``new`` conditions' D_g with their perturbed copies, plus the
+        replay; returns the losses (empty when there is no data)."""
+        gen = torch.Generator().manual_seed(seed)
+        batches = []
+        for item in new:
+            batches.append(item.data.to_batch())
+            if item.data.x.shape[0] > 1 and self.augment > 0:
+                batches.append(self._augmented(item, gen))
+        if self.replay is not None:
+            for index in self.replay.conditions():
+                batches.append(
+                    self.replay.read_condition(index, self.task.device).samples.to_batch()
+                )
+        batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
+        if batch.x.shape[0] == 0:
+            return []
+        return distill(policy, batch, self.config, gen)
+
+    def _augmented(self, item: Labelled, gen: torch.Generator) -> DistillBatch:
+        """``augment`` copies of D_g's states, q and q-dot perturbed by ``augment_scale`` times
+        the per-step spread of the condition's successes, labelled by its controllers."""
+        x = item.data.x
+        spread = (x - x.mean(0)).std(0)  # [T, dX]
+        noise = torch.randn(self.augment, *x.shape, generator=gen, dtype=x.dtype)
+        x_aug = (x + self.augment_scale * spread * noise.to(x.device)).flatten(0, 1)
+        x_aug = consistent_states(self.task, x_aug, item.offset)
+        aug = ConditionSamples(
+            x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0], *targets(x_aug, item.labels)
+        )
+        return aug.to_batch()
