@@ -13,6 +13,7 @@ import pickle
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -153,6 +154,30 @@ class GaussianPolicy(torch.nn.Module):
                 f"policy variance must be finite and positive [{self.dU}], got {variance}"
             )
         self.variance.copy_(variance)
+
+    def description(self) -> dict[str, Any]:
+        """What rebuilds this policy's architecture, as JSON-able data: ``dX``, ``dU`` and the
+        :class:`PolicyConfig` (its weights are :meth:`state_dict`)."""
+        return {"dX": self.dX, "dU": self.dU, "config": asdict(self.config)}
+
+    @classmethod
+    def from_state(
+        cls,
+        description: dict[str, Any],
+        state: dict[str, Tensor],
+        device: torch.device | str = "cpu",
+    ) -> GaussianPolicy:
+        """The policy of :meth:`description` with the weights and buffers ``state``; a
+        malformed description or a state of other shapes is a :class:`LolgpsError`."""
+        try:
+            settings = dict(description["config"])
+            settings["hidden_sizes"] = tuple(settings["hidden_sizes"])
+            policy = cls(int(description["dX"]), int(description["dU"]), PolicyConfig(**settings))
+            policy.load_state_dict(state)
+        except (KeyError, TypeError, ValueError, RuntimeError) as error:
+            text = str(error).strip()
+            raise LolgpsError(text.splitlines()[0] if text else repr(error)) from None
+        return policy.to(device)
 
     def save(self, directory: str | Path) -> None:
         """Write ``policy.pt`` (the state dict) and ``policy.json`` (dX, dU, config) into
