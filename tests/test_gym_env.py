@@ -2,21 +2,84 @@
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Iterator
+from dataclasses import asdict, replace
+
 import gymnasium as gym
 import numpy as np
+import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 
-import lolgps_torch.gym_env  # noqa: F401  (registers the id)
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.gym_env import (
+    DEFAULT_URDF,
+    ENV_ID,
+    NORMALIZED_ENV_ID,
+    PegInsertionEnv,
+    reach,
+)
+from lolgps_torch.task import TaskConfig
 
 
+@pytest.fixture(scope="module")
+def normalized() -> Iterator[gym.Env[np.ndarray, np.ndarray]]:
+    env = gym.make(NORMALIZED_ENV_ID)
+    yield env
+    env.close()
+
+
+@pytest.mark.filterwarnings("ignore:.*symmetric and normalized")  # torque actions, by design
 def test_env_passes_gymnasium_checker() -> None:
-    env = gym.make("lolgps_torch/PegInsertion-v0")
+    env = gym.make(ENV_ID)
     check_env(env.unwrapped, skip_render_check=True)
     env.close()
 
 
+def test_normalized_env_passes_the_checker_without_warnings(
+    normalized: gym.Env[np.ndarray, np.ndarray],
+) -> None:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(normalized.unwrapped, skip_render_check=True)
+    assert [str(w.message) for w in caught] == []
+    assert normalized.spec is not None and normalized.spec.max_episode_steps == 100
+    space = normalized.action_space
+    assert isinstance(space, gym.spaces.Box)
+    assert np.array_equal(space.low, -np.ones(7)) and np.array_equal(space.high, np.ones(7))
+
+
+def test_rewards_are_the_task_costs_and_observations_stay_in_bounds(
+    normalized: gym.Env[np.ndarray, np.ndarray],
+) -> None:
+    """Bang-bang actions at full effort drive the joints to Bullet's speed clamp; every
+    observation stays in the space, and the rewards and final distance are the task's own
+    scoring of the same torques."""
+    env = normalized.unwrapped
+    assert isinstance(env, PegInsertionEnv)
+    rng = np.random.default_rng(0)
+    actions = rng.choice([-1.0, 1.0], size=(100, 7))
+    obs, info = normalized.reset(options={"hole_offset": (0.01, -0.01)})
+    assert info["hole_offset"] == (0.01, -0.01)
+    rewards, states, truncated = [], [obs], False
+    for a in actions:
+        assert not truncated
+        obs, reward, terminated, truncated, info = normalized.step(a)
+        assert not terminated and normalized.observation_space.contains(obs)
+        rewards.append(reward)
+        states.append(obs)
+    assert truncated
+    assert np.abs(np.array(states)[:, 7:14]).max() > 50.0  # the velocity bound is exercised
+    torques = torch.from_numpy(actions * env.effort)
+    task = env.task.sample(lambda t, x, rows: torques[t][None], [(0.01, -0.01)])
+    assert np.allclose(-np.array(rewards), task.cost[0].numpy(), rtol=1e-12, atol=0.0)
+    assert np.allclose(np.array(states[:-1]), task.x[0].numpy(), rtol=0.0, atol=1e-9)
+    assert info["tip_distance"] == pytest.approx(float(task.final_distance[0]), abs=1e-9)
+
+
 def test_env_episode_is_truncated_and_rewards_are_costs() -> None:
-    env = gym.make("lolgps_torch/PegInsertion-v0")
+    env = gym.make(ENV_ID)
     obs, info = env.reset(seed=0, options={"hole_offset": (0.0, 0.0)})
     assert info["hole_offset"] == (0.0, 0.0)
     steps, rewards, truncated = 0, [], False
@@ -28,3 +91,29 @@ def test_env_episode_is_truncated_and_rewards_are_costs() -> None:
     assert all(float(r) < 0 for r in rewards)
     assert info["tip_distance"] > 0.06 and not info["success"]  # holding the start pose
     env.close()
+
+
+def test_task_config_kwarg_rebuilds_the_task_and_fixed_offset() -> None:
+    config = TaskConfig(urdf=DEFAULT_URDF)
+    config = replace(config, world=replace(config.world, T=5))
+    env = PegInsertionEnv(task_config=asdict(config), hole_offset=(0.02, 0.02))
+    assert env.task.config == config
+    assert env.spec_kwargs()["task_config"] == asdict(config)
+    _, info = env.reset(seed=3)
+    assert info["hole_offset"] == (0.02, 0.02)
+    truncations = [env.step(np.zeros(7))[3] for _ in range(5)]
+    assert truncations == [False] * 4 + [True]
+    with pytest.raises(LolgpsError, match="beyond the arm's reach"):
+        env.reset(options={"hole_offset": (5.0, 0.0)})
+    env.close()
+    with pytest.raises(LolgpsError, match="either task_config or urdf"):
+        PegInsertionEnv(urdf="other.urdf", task_config=asdict(config))
+
+
+def test_reach_is_the_chain_length(normalized: gym.Env[np.ndarray, np.ndarray]) -> None:
+    """The KUKA chain's joint translations (0.1575 ... 0.045 m), the peg (0.2 m) and the top
+    point's offset (0.15 m), summed by hand from robots/kuka_peg.urdf."""
+    env = normalized.unwrapped
+    assert isinstance(env, PegInsertionEnv)
+    by_hand = 0.1575 + 0.2025 + 0.2045 + 0.2155 + 0.1845 + 0.2155 + 0.081 + 0.045 + 0.2 + 0.15
+    assert reach(env.task.kinematics) == pytest.approx(by_hand, abs=1e-8)  # float32 URDF parse
