@@ -30,6 +30,7 @@ import math
 import os
 import re
 import shlex
+import socket
 import statistics
 import subprocess
 import sys
@@ -251,6 +252,24 @@ def check_out(path: str) -> str:
     return str(out)
 
 
+def check_address(address: str | None) -> None:
+    """Raise :class:`LolgpsError` if ``address`` names a ``host:port`` (optionally
+    ``ray://host:port``) where nothing answers within 5 s (``auto`` and None pass: Ray itself
+    finds the cluster, or starts a local one).
+
+    :param address: ``--address`` as typed, or None
+    """
+    if address is None or address == "auto":
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise LolgpsError(f"--address {address}: expected auto or HOST:PORT")
+    try:
+        socket.create_connection((host, int(port)), timeout=5.0).close()
+    except OSError as exc:
+        raise LolgpsError(f"--address {address}: no Ray head answers ({exc})") from None
+
+
 def default_scripts() -> str:
     """The repository's ``scripts`` folder, next to this package."""
     return str(Path(__file__).resolve().parents[1] / "scripts")
@@ -277,6 +296,7 @@ def make_sweep(args: argparse.Namespace, extra: Sequence[str], scripts: str) -> 
         raise LolgpsError("--evaluate-args needs --evaluate")
     if args.address is not None and args.num_cpus is not None:
         raise LolgpsError("--num-cpus sizes a local Ray instance: drop it with --address")
+    check_address(args.address)
     num_cpus = args.num_cpus if args.num_cpus is not None else os.cpu_count() or 1
     if num_cpus < 1:
         raise LolgpsError(f"--num-cpus {num_cpus}: must be >= 1")

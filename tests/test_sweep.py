@@ -89,6 +89,8 @@ def test_extra_flags_split_at_the_first_double_dash() -> None:
         (["--stream", "other"], "invalid choice"),
         (["--num-cpus", "0"], "must be >= 1"),
         (["--address", "auto", "--num-cpus", "2"], "drop it with --address"),
+        (["--address", "nohost"], "expected auto or HOST:PORT"),
+        (["--address", "127.0.0.1:1"], "no Ray head answers"),
         (["--evaluate-args=--areas 2"], "needs --evaluate"),
         (["--evaluate", "--evaluate-args=--workers 3"], "sets --workers"),
         (["--", "--seed", "3"], "sets --seed"),
