@@ -62,6 +62,10 @@ class ConditionSummary:
     :param policy_final_distance_after: the global policy's noiseless final distance (m)
         right after the condition's S-step; ``..._end`` after the whole stream (set last).
     :param distill_loss: the S-step's final loss (None without an S-step).
+    :param rollouts: rollouts drawn at the condition, including those that chose where local
+        learning starts.
+    :param start: where local learning started: hold (the hold controller), policy (p_pre of
+        the global policy, which had the lower cost) or known (the policy already succeeded).
     :param failure: why local learning stopped early on a numerical failure (None: it did
         not); the condition's D_g then holds the successes before it.
     """
@@ -78,6 +82,8 @@ class ConditionSummary:
     policy_success_after: bool
     distill_loss: float | None
     failure: str | None = None
+    rollouts: int = 0
+    start: str = "hold"
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

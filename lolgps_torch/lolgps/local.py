@@ -24,7 +24,7 @@ from lolgps_torch.controllers import hold_controller, smoothed_noise
 from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
-from lolgps_torch.sim.rollout import linear_gaussian_actor
+from lolgps_torch.sim.rollout import Actor, linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.trajopt import (
     CStepConfig,
@@ -98,12 +98,16 @@ class LocalLearner:
 
     def sample(self, p_act: LinearGaussian) -> Trajectories:
         """N rollouts of ``p_act`` at this condition."""
+        return self.sample_actor(lambda noise: linear_gaussian_actor(p_act, noise))
+
+    def sample_actor(self, actor: Callable[[Tensor], Actor]) -> Trajectories:
+        """N rollouts at this condition of the controller ``actor(noise)`` builds from this
+        learner's smoothed exploration noise ``[N, T, dU]``."""
         T, dU = self.task.T, self.task.layout.dU
         noise = smoothed_noise(
             self.config.samples, T, dU, self.config.noise_smoothing, self.generator
         ).to(self.task.device)
-        actor = linear_gaussian_actor(p_act, noise)
-        return self.task.sample(actor, [self.offset] * self.config.samples)
+        return self.task.sample(actor(noise), [self.offset] * self.config.samples)
 
     def fit(self, p_act: LinearGaussian, samples: Trajectories) -> Fit:
         """Dynamics and cost expansion around the new samples; adapts the step size."""
@@ -139,6 +143,7 @@ def iterate(
     linearize: Linearizer | None,
     anchor_to_pre: bool,
     where: tuple[int, int, float],
+    samples: Trajectories | None = None,
 ) -> tuple[Trajectories, LinearGaussian | None, IterationRecord]:
     """One iteration of the trajectory-centric loop, shared by the stream, batch GPS and the
     single-condition learner: sample ``p_act``, fit the dynamics, linearise the global policy
@@ -146,10 +151,11 @@ def iterate(
     against p_pre (``anchor_to_pre``) or against the previous p_cur.
 
     :param where: (condition, iteration, alpha of p_act) for the record.
+    :param samples: rollouts of ``p_act`` drawn already (then none are drawn here).
     :returns: the samples, the new p_pre (None without ``linearize``) and the iteration's record.
     """
     t0 = time.perf_counter()
-    samples = learner.sample(p_act)
+    samples = learner.sample(p_act) if samples is None else samples
     t1 = time.perf_counter()
     fit = learner.fit(p_act, samples)
     p_pre = linearize(samples.x) if linearize is not None else None

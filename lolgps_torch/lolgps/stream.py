@@ -22,7 +22,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Literal, NamedTuple, get_args
 
 import torch
 
@@ -42,6 +42,7 @@ from lolgps_torch.types import LinearGaussian, Trajectories
 
 AlphaSchedule = Literal["constant", "dynamic"]
 CStepAnchor = Literal["previous", "pre"]
+Transfer = Literal["policy", "none"]
 Log = Callable[[IterationRecord | DistillRecord], None]
 
 
@@ -60,6 +61,10 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
+    :param transfer: policy: a new condition starts from what the global policy already does
+        there (:meth:`StreamLearner.start`); none: from the hold controller (the paper).
+    :param transfer_phases: iterations with successful samples needed in D_g where the
+        policy's own noiseless rollout already succeeds (at most ``success_phases``).
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -73,12 +78,19 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
+    transfer: Transfer = "policy"
+    transfer_phases: int = 3
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
 
     def __post_init__(self) -> None:
-        for name, kind in (("alpha_schedule", AlphaSchedule), ("cstep_anchor", CStepAnchor)):
+        options = (
+            ("alpha_schedule", AlphaSchedule),
+            ("cstep_anchor", CStepAnchor),
+            ("transfer", Transfer),
+        )
+        for name, kind in options:
             if getattr(self, name) not in get_args(kind):
                 raise LolgpsError(f"{name} {getattr(self, name)!r}: one of {get_args(kind)}")
         checks = {
@@ -88,6 +100,7 @@ class StreamConfig:
             "augment": self.augment >= 0,
             "augment_scale": 0.0 <= self.augment_scale < float("inf"),
             "max_iterations": self.max_iterations >= 1,
+            "transfer_phases": self.transfer_phases >= 1,
             "seed": self.seed >= 0,
         }
         for name, ok in checks.items():
@@ -97,6 +110,17 @@ class StreamConfig:
     def next_alpha(self, alpha: float) -> float:
         """The weight of p_pre at the next iteration."""
         return min(1.0, alpha + self.alpha_step) if self.alpha_schedule == "dynamic" else alpha
+
+
+class Start(NamedTuple):
+    """How local learning starts at a new condition: the first iteration's samples, drawn
+    by ``p_act`` (the hold controller, or p_pre fitted around the global policy's own
+    rollouts), whether the policy already succeeds there, and the rollouts spent choosing."""
+
+    samples: Trajectories
+    p_act: LinearGaussian
+    source: Literal["hold", "policy", "known"]
+    extra_rollouts: int
 
 
 class Successes:
@@ -137,18 +161,25 @@ class StreamLearner:
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
         p_pre: LinearGaussian | None = None
         alpha, found, iterations, failure = cfg.alpha, Successes(), 0, None
+        start = self.start(learner, linearize) if cfg.transfer == "policy" else None
+        phases = cfg.success_phases
+        if start and start.source == "known":
+            phases = min(phases, cfg.transfer_phases)
+        rollouts = start.extra_rollouts if start else 0
         try:
             for i in range(cfg.max_iterations):
                 iterations, p_cur = i + 1, learner.p_cur
                 p_act = p_cur if p_pre is None else mix(p_pre, p_cur, alpha)  # eq. 6
                 used = alpha if p_pre is not None else 0.0
+                drawn = start.samples if start and i == 0 else None
                 samples, p_pre, record = iterate(
-                    learner, p_act, linearize, cfg.cstep_anchor == "pre", (index, i, used)
+                    learner, p_act, linearize, cfg.cstep_anchor == "pre", (index, i, used), drawn
                 )
                 self.log(record)
+                rollouts += samples.N
                 found.add(samples, Labels(p_cur, p_pre, i))
                 alpha = cfg.next_alpha(alpha)
-                if len(found.kept) >= cfg.success_phases:
+                if len(found.kept) >= phases:
                     break
         except NumericalError as error:  # reported in the summary; the stream goes on
             failure = f"iteration {iterations - 1}: {error}"
@@ -175,12 +206,38 @@ class StreamLearner:
             policy_success_after=after < self.threshold,
             distill_loss=losses[-1] if losses else None,
             failure=failure,
+            rollouts=rollouts,
+            start="hold" if start is None else start.source,
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
         self.folder.write_entry(index, entry.to_json())
         self.replay.append_condition(index, offset, data, iterations, labels.p_cur, labels.p_pre)
         return entry
+
+    def start(self, learner: LocalLearner, linearize: Linearizer | None) -> Start | None:
+        """Forward transfer: where to start local learning at a new condition.
+
+        The global policy is tried there first: one noiseless rollout and N rollouts with its
+        own noise, around which p_pre is fitted. Where the noiseless rollout succeeds, the
+        policy already knows the condition: p_cur starts at p_pre, the policy's rollouts are
+        the first iteration's samples, and D_g needs only ``transfer_phases`` iterations with
+        successes. Elsewhere the hold controller is sampled too, and local learning starts
+        from whichever of the two had the lower mean cost, with its samples. None without a
+        trained policy (the first condition, and naive learning)."""
+        if linearize is None:
+            return None
+        offset = learner.offset
+        known = policy_distances(self.task, self.policy, [offset])[0] < self.threshold
+        probe = learner.sample_actor(lambda noise: policy_actor(self.policy, noise))
+        p_start = linearize(probe.x)
+        n = probe.N
+        if not known:
+            hold = learner.sample(learner.p_cur)
+            if float(hold.cost.sum(1).mean()) <= float(probe.cost.sum(1).mean()):
+                return Start(hold, learner.p_cur, "hold", 1 + n)
+        learner.p_cur = p_start
+        return Start(probe, p_start, "known" if known else "policy", 1 + (0 if known else n))
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own
