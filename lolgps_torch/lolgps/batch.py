@@ -1,14 +1,20 @@
-"""Batch GPS, the reference with nothing to forget: every training condition at once.
+"""Batch GPS as mirror-descent GPS (MDGPS; Montgomery & Levine, "Guided Policy Search via
+Approximate Mirror Descent", 2016): every training condition at once, the reference with
+nothing to forget.
 
     repeat:
-        for every condition m: sample p_act(m), fit dynamics, p_pre(m) <- linearise pi around
-            the samples (once pi is trained), C-step against p_bar (as the stream)
-        pi <- S-step on the D_g of every condition, labelled by each one's p_cur and p_pre
+        for every condition m: sample p_cur(m), fit dynamics, and take the C-step
+            p_cur(m) <- argmin E[cost] s.t. KL(p_cur(m) || p_pre(m)) <= eps
+            with p_pre(m) the global policy linearised around condition m's new samples
+            (before the first S-step: against the previous p_cur, a trust region)
+        pi <- S-step on every condition's samples of this iteration, labelled by the p_cur
+              (and p_pre) just optimised there
     until every condition has ``success_phases`` iterations with successful samples, or a limit
 
 It shares the stream's per-iteration step (:func:`~lolgps_torch.lolgps.local.iterate`), its
-D_g labelling and its S-step (:class:`~lolgps_torch.lolgps.distillation.Distiller`). One
-checkpoint is written, at the end; the replay is written last, as in the stream.
+labelling and its S-step (:class:`~lolgps_torch.lolgps.distillation.Distiller`, with the same
+network and augmentation). One checkpoint is written, at the end; then the replay, each
+condition's successful samples labelled by its final controllers, as in the stream.
 """
 
 from __future__ import annotations
@@ -16,7 +22,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from lolgps_torch.controllers import mix
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import save_policy
 from lolgps_torch.data.records import ConditionSummary, DistillRecord
@@ -41,8 +46,11 @@ from lolgps_torch.types import LinearGaussian
 class BatchLearner:
     """All conditions learned together, with an S-step after every iteration.
 
-    Every :class:`StreamConfig` field applies except ``replay`` (every condition is in every
-    S-step), which must stay on.
+    MDGPS samples p_cur itself and anchors the C-step to the policy, so ``alpha``,
+    ``alpha_schedule``, ``transfer`` and ``cstep_anchor`` are fixed by it
+    (:func:`~lolgps_torch.lolgps.methods.method_config` records them); every other
+    :class:`StreamConfig` field applies, and ``replay`` must stay on (every condition is in
+    every S-step).
     """
 
     def __init__(self, task: PegTask, config: StreamConfig, folder: RunFolder, log: Log) -> None:
@@ -74,40 +82,33 @@ class BatchLearner:
         priors = [prior_from_config(cfg.local.dynamics) for _ in conditions]
         pres: list[LinearGaussian | None] = [None] * len(conditions)
         found = [Successes() for _ in conditions]
-        alpha, iterations, losses = cfg.alpha, 0, []
-        labelled: list[Labelled] = []
+        iterations, losses = 0, []
         for i in range(cfg.max_iterations):
             iterations = i + 1
+            labelled = []
             for m, learner in enumerate(learners):
-                p_cur, p_pre = learner.p_cur, pres[m]
-                p_act = p_cur if p_pre is None else mix(p_pre, p_cur, alpha)
-                used = alpha if p_pre is not None else 0.0
-                linearize = self._linearizer(priors[m])
-                samples, new_pre, record = iterate(
-                    learner, p_act, linearize, cfg.cstep_anchor == "pre", (m, i, used)
+                p_cur = learner.p_cur
+                samples, pres[m], record = iterate(
+                    learner, p_cur, self._linearizer(priors[m]), True, (m, i, 0.0)
                 )
                 self.log(record)
-                pres[m] = new_pre if new_pre is not None else p_pre
                 found[m].add(samples, Labels(p_cur, pres[m], i))
-            labelled = []
-            for m, f in enumerate(found):
-                labels = Labels(learners[m].p_cur, pres[m], iterations)
-                labelled.append(Labelled(conditions[m], label(task, f.kept, labels), labels))
+                labels = Labels(learner.p_cur, pres[m], iterations)
+                labelled.append(Labelled(conditions[m], label(task, [samples], labels), labels))
             t0 = time.perf_counter()
             losses = self.distill(self.policy, labelled, cfg.seed * 1000 + i)
             rows = sum(int(item.data.x.shape[0]) for item in labelled) * task.T
             self.log(DistillRecord(len(conditions) - 1, time.perf_counter() - t0, rows, i))
-            alpha = cfg.next_alpha(alpha)
             if all(len(f.kept) >= cfg.success_phases for f in found):
                 break
-        return self._finish(conditions, learners, found, labelled, iterations, losses, on_condition)
+        return self._finish(conditions, learners, found, pres, iterations, losses, on_condition)
 
     def _finish(
         self,
         conditions: list[tuple[float, float]],
         learners: list[LocalLearner],
         found: list[Successes],
-        labelled: list[Labelled],
+        pres: list[LinearGaussian | None],
         iterations: int,
         losses: list[float],
         on_condition: Callable[[ConditionSummary], None],
@@ -115,8 +116,10 @@ class BatchLearner:
         """Summary entries, the final checkpoint and the replay of every condition."""
         threshold = self.task.config.world.success_threshold
         after = policy_distances(self.task, self.policy, conditions)
-        summary = []
+        summary, labelled = [], []
         for m, offset in enumerate(conditions):
+            labels = Labels(learners[m].p_cur, pres[m], iterations)
+            labelled.append(Labelled(offset, label(self.task, found[m].kept, labels), labels))
             local = noiseless_distance(self.task, learners[m].p_cur, offset)
             entry = ConditionSummary(
                 condition=m,
@@ -130,6 +133,7 @@ class BatchLearner:
                 policy_final_distance_after=after[m],
                 policy_success_after=after[m] < threshold,
                 distill_loss=losses[-1] if losses else None,
+                rollouts=iterations * learners[m].config.samples,
                 policy_final_distance_end=after[m],
                 policy_success_end=after[m] < threshold,
             )
