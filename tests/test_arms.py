@@ -7,10 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pybullet_data
 import pytest
+import torch
 
 from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.sim.world import PegWorld, WorldConfig
 
 DATA = pybullet_data.getDataPath()
 XARM = os.path.join(DATA, "xarm/xarm6_robot.urdf")
@@ -30,6 +34,38 @@ def _urdf(tmp_path: Path, joint_type: str, length: float) -> str:
     path = tmp_path / f"{joint_type}_{length}.urdf"
     path.write_text(f'<robot name="toy">{body}</robot>')
     return str(path)
+
+
+@pytest.mark.parametrize(
+    "urdf",
+    [
+        "robots/kuka_peg.urdf",
+        PANDA,
+        XARM,
+        os.path.join(DATA, "kuka_iiwa/model.urdf"),
+    ],
+)
+def test_real_arms_pass_validation(urdf: str) -> None:
+    """Massless fixed links (Panda), principal moments breaking the triangle inequality
+    (xArm), massless base and meshes beside the URDF (KUKA model) are all accepted."""
+    assert load_arm(urdf).dof >= 6
+
+
+def test_missing_axis_is_x_in_kinematics_and_simulator(tmp_path: Path) -> None:
+    """URDF's default axis is (1, 0, 0); pytorch-kinematics alone would take (0, 0, 1)."""
+    path = Path(_urdf(tmp_path, "revolute", 0.3))
+    path.write_text(path.read_text().replace('<axis xyz="0 1 0"/>', ""))
+    arm = load_arm(str(path))
+    kin = PegKinematics(arm)
+    world = PegWorld(arm, WorldConfig(), (0.3, 0.0, 0.0))
+    qs = np.random.default_rng(0).uniform(-1.5, 1.5, (5, arm.dof))
+    expected = []
+    for q in qs:
+        world.reset(q)
+        expected.append(world.points())
+    world.close()
+    got = kin.points(torch.tensor(qs))
+    assert torch.allclose(got, torch.tensor(np.stack(expected)), atol=1e-6, rtol=0)
 
 
 def test_panda_description() -> None:
@@ -73,6 +109,16 @@ def test_inspect_arm_reports_the_kuka() -> None:
             "entities",
         ),
         (lambda tmp: _urdf(tmp, "revolute", 0.02), "too short"),
+        (  # PyBullet's URDF importer segfaults on this one
+            lambda tmp: _write(
+                tmp,
+                "twice.urdf",
+                Path("robots/kuka_peg.urdf")
+                .read_text()
+                .replace('name="iiwa_joint_3"', 'name="iiwa_joint_2"'),
+            ),
+            "joint name 'iiwa_joint_2' is used twice",
+        ),
     ],
 )
 def test_bad_arms_give_one_error_line(tmp_path: Path, make: object, message: str) -> None:

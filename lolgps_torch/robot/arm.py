@@ -1,4 +1,5 @@
-"""What the method needs to know about a URDF arm, read once with yourdfpy.
+"""What the method needs to know about a URDF arm, read once with yourdfpy after the XML has
+been checked against what PyBullet and pytorch-kinematics need (:mod:`.validate`).
 
 yourdfpy (and trimesh, which it imports) is imported only when a URDF is parsed, so processes
 that merely receive an :class:`ArmSpec` (the evaluation's workers) do not pay for it.
@@ -28,6 +29,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.robot.validate import resolve_mesh, validate_urdf
 
 if TYPE_CHECKING:
     import yourdfpy
@@ -107,12 +109,9 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
     peg = peg or PegConfig()
     if peg.axis not in _AXIS_RPY:
         raise LolgpsError(f"--peg-axis must be one of {', '.join(_AXIS_RPY)}, got {peg.axis!r}")
-    raw, tree, robot = _parse(path)
+    raw, tree, robot, root = _parse(path)
     parent_joint = {j.child: j for j in robot.robot.joints}
     links = [link.name for link in robot.robot.links]
-    roots = [name for name in links if name not in parent_joint]
-    if len(roots) != 1:
-        raise LolgpsError(f"{path}: URDF must have exactly one root link, found {roots}")
 
     def path_joints(link: str) -> list[yourdfpy.Joint]:
         chain = []
@@ -128,16 +127,7 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
         ee_link = _detect_ee_link(links, path_joints)
     elif ee_link not in links:
         raise LolgpsError(f"unknown end-effector link {ee_link!r}; links are: {', '.join(links)}")
-    chain = path_joints(ee_link)
-    actuated = [j for j in chain if j.type in _ACTUATED]
-    if not actuated:
-        raise LolgpsError(f"end-effector link {ee_link!r} is not downstream of any actuated joint")
-    unsupported = [j for j in chain if j.type not in (*_ACTUATED, "fixed")]
-    if unsupported:
-        raise LolgpsError(
-            f"joint {unsupported[0].name!r} ({unsupported[0].type}) lies on the chain to "
-            f"{ee_link!r}; only revolute, continuous and fixed joints are supported there"
-        )
+    actuated = _actuated_joints(path_joints(ee_link), ee_link)
 
     text = _portable_text(tree, os.path.dirname(os.path.abspath(path)))
     carries_peg = CARRIED_PEG_TIP in links and ee_link == CARRIED_PEG_TIP
@@ -157,7 +147,7 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
         urdf_text=text,
         source_path=os.path.abspath(path),
         source_sha256=hashlib.sha256(raw).hexdigest(),
-        root_link=roots[0],
+        root_link=root,
         ee_link=ee_link,
         point_link=point_link,
         peg_link=peg_link,
@@ -171,8 +161,9 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
     )
 
 
-def _parse(path: str) -> tuple[bytes, ET.Element, yourdfpy.URDF]:
-    """The file's bytes, its XML tree and yourdfpy's model; one-line errors for bad files."""
+def _parse(path: str) -> tuple[bytes, ET.Element, yourdfpy.URDF, str]:
+    """The file's bytes, its XML tree, yourdfpy's model and the root link; one-line errors for
+    bad files, raised before yourdfpy, pytorch-kinematics or PyBullet read them."""
     import yourdfpy  # here, not at the top: see the module docstring
 
     if not os.path.isfile(path):
@@ -186,13 +177,28 @@ def _parse(path: str) -> tuple[bytes, ET.Element, yourdfpy.URDF]:
         tree = ET.fromstring(text)
     except ET.ParseError as exc:
         raise LolgpsError(f"{path}: malformed XML ({exc})") from None
+    root = validate_urdf(tree, path)
     try:
         robot = yourdfpy.URDF.load(
             io.BytesIO(raw), build_scene_graph=False, load_meshes=False, load_collision_meshes=False
         )
     except Exception as exc:  # yourdfpy raises assorted types on schema errors
         raise LolgpsError(f"{path}: not a valid URDF ({type(exc).__name__}: {exc})") from None
-    return raw, tree, robot
+    return raw, tree, robot, root
+
+
+def _actuated_joints(chain: list[yourdfpy.Joint], ee_link: str) -> list[yourdfpy.Joint]:
+    """The actuated joints of the chain from the root to ``ee_link``."""
+    actuated = [j for j in chain if j.type in _ACTUATED]
+    if not actuated:
+        raise LolgpsError(f"end-effector link {ee_link!r} is not downstream of any actuated joint")
+    unsupported = [j for j in chain if j.type not in (*_ACTUATED, "fixed")]
+    if unsupported:
+        raise LolgpsError(
+            f"joint {unsupported[0].name!r} ({unsupported[0].type}) lies on the chain to "
+            f"{ee_link!r}; only revolute, continuous and fixed joints are supported there"
+        )
+    return actuated
 
 
 def _limits(j: yourdfpy.Joint, path: str) -> tuple[float, float, float, float]:
@@ -229,33 +235,21 @@ def _cylinder_radius(robot: yourdfpy.URDF, link: str, path: str) -> float:
 
 
 def _portable_text(tree: ET.Element, base_dir: str) -> str:
-    """The URDF as text both PyBullet and pytorch-kinematics accept from any folder: mesh
-    paths resolved to absolute ones, and transmission/gazebo elements (unused here) dropped."""
+    """The URDF as text both PyBullet and pytorch-kinematics accept from any folder, and read
+    alike: mesh paths resolved to absolute ones, transmission/gazebo elements (unused here)
+    dropped, and the URDF default axis (1, 0, 0) written out on moving joints that omit it,
+    since pytorch-kinematics would take (0, 0, 1) instead."""
     for child in list(tree):
         if child.tag in ("transmission", "gazebo"):
             tree.remove(child)
     for mesh in tree.iter("mesh"):
-        resolved = _resolve_mesh(mesh.get("filename", ""), base_dir)
+        resolved = resolve_mesh(mesh.get("filename", ""), base_dir)
         if resolved:
             mesh.set("filename", resolved)
+    for joint in tree.findall("joint"):
+        if joint.get("type") != "fixed" and joint.find("axis") is None:
+            ET.SubElement(joint, "axis", xyz="1 0 0")
     return ET.tostring(tree, encoding="unicode")
-
-
-def _resolve_mesh(name: str, base_dir: str) -> str | None:
-    """Absolute path of a relative or ``package://`` mesh found beside the URDF, else None."""
-    if name.startswith("package://"):
-        rest = name[len("package://") :]
-        candidates = [rest, rest.split("/", 1)[-1]]  # with and without a ROS package name
-    elif "://" in name or os.path.isabs(name) or not name:
-        return None
-    else:
-        candidates = [name]
-    for candidate in candidates:
-        for folder in (base_dir, os.path.dirname(base_dir)):
-            full = os.path.join(folder, candidate)
-            if os.path.isfile(full):
-                return full
-    return None
 
 
 def _attach_peg(text: str, ee_link: str, peg: PegConfig) -> str:
