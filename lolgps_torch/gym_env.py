@@ -5,7 +5,7 @@ environment itself truncates after its own task's T, which a dataset's env spec 
 
 * ``lolgps_torch/PegInsertion-v0``: actions are torques (N m) in ``[-effort, effort]``;
 * ``lolgps_torch/PegInsertionNormalized-v0``: the same with ``normalize_actions=True``,
-  actions in ``[-1, 1]`` and torque ``u = action * effort``, for RL libraries.
+  actions in ``[-1, 1]`` (float32, as RL libraries prefer) and torque ``u = action * effort``.
 
 Observation: the state vector x (float64, ``dX = 2n + 12`` for an arm with n actuated joints,
 see :class:`lolgps_torch.state.StateLayout`)::
@@ -124,8 +124,11 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
         self.effort = np.asarray(self.task.arm.effort, dtype=np.float64)
         low, high = observation_bounds(self.task)
         self.observation_space = gym.spaces.Box(low, high, dtype=np.float64)
-        bound = np.ones_like(self.effort) if normalize_actions else self.effort
-        self.action_space: gym.spaces.Box = gym.spaces.Box(-bound, bound, dtype=np.float64)
+        self.action_space: gym.spaces.Box = (
+            gym.spaces.Box(-1.0, 1.0, (self.task.arm.dof,), dtype=np.float32)
+            if normalize_actions
+            else gym.spaces.Box(-self.effort, self.effort, dtype=np.float64)
+        )
         self._t = 0
         self._targets = self.task.targets([(0.0, 0.0)])
         self._x = np.zeros(self.task.layout.dX)
@@ -162,7 +165,7 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
         return self._x.copy(), {"hole_offset": offset}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        high = self.action_space.high
+        high = self.action_space.high.astype(np.float64)
         a = np.clip(np.asarray(action, dtype=np.float64), -high, high)
         u = a * self.effort if self.normalize_actions else a
         cost = self._cost(self._x, u, self._t)

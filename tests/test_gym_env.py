@@ -47,6 +47,7 @@ def test_normalized_env_passes_the_checker_without_warnings(
     assert normalized.spec is not None and normalized.spec.max_episode_steps == 100
     space = normalized.action_space
     assert isinstance(space, gym.spaces.Box)
+    assert space.dtype == np.float32 and space.shape == (7,)
     assert np.array_equal(space.low, -np.ones(7)) and np.array_equal(space.high, np.ones(7))
 
 
