@@ -1,0 +1,52 @@
+"""The package's layers, bottom to top: a module imports only from its own package or from a
+lower layer (checked by tests/test_layers.py; drawn by scripts/research/import_graph.py)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("errors", "types", "state", "progress", "layers"),
+    ("robot", "controllers"),
+    ("sim", "cost", "dynamics", "trajopt"),
+    ("policy",),
+    ("task",),
+    ("gym_env",),
+    ("data",),
+    ("lolgps",),
+    ("evaluation",),
+    ("cli", "sweep"),
+)
+PACKAGE = Path(__file__).resolve().parent
+
+
+def unit_of(module: str) -> str:
+    """The layer unit of a dotted module name: ``lolgps_torch.sim.world`` -> ``sim``."""
+    return module.split(".")[1] if module.count(".") >= 1 else ""
+
+
+def rank(unit: str) -> int:
+    """The layer index of a unit (ValueError for a unit no layer names)."""
+    for index, units in enumerate(LAYERS):
+        if unit in units:
+            return index
+    raise ValueError(f"lolgps_torch.{unit} is in no layer")
+
+
+def imports() -> list[tuple[str, str]]:
+    """``(importing unit, imported unit)`` for every ``lolgps_torch`` import in the package."""
+    edges = set()
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+        source = unit_of(".".join(parts))
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            for name in names:
+                if name.startswith("lolgps_torch.") and unit_of(name) != source:
+                    edges.add((source, unit_of(name)))
+    return sorted(edges)
