@@ -1,104 +1,197 @@
-"""Shared command-line plumbing: the arm/task flags every script takes, and one-line errors."""
+"""Shared command-line plumbing: flags derived from the config dataclasses, the arm/task flags
+every script takes, checks of paths and devices before any work, and one-line errors."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import math
 import os
+import re
 import sys
-from collections.abc import Callable
+import types
+import typing
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
 
 import torch
 
-from lolgps_torch.cost.l12 import CostConfig
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import PegConfig
-from lolgps_torch.robot.placement import PlacementConfig
-from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.task import TaskConfig
+
+Position = tuple[float, float]
+
+
+def _field_hint(owner: object, name: str) -> Any:
+    """The resolved type annotation of field ``name`` of the dataclass instance ``owner``."""
+    return typing.get_type_hints(type(owner))[name]
+
+
+def _param_help(owner: object, name: str) -> str:
+    """The text of ``:param name:`` in the docstring of ``owner``'s class, on one line."""
+    doc = type(owner).__doc__ or ""
+    found = re.search(rf":param {name}:(.*?)(?=:param |\n\s*\n|$)", doc, re.DOTALL)
+    if found is None:
+        raise TypeError(f"{type(owner).__name__} documents no :param {name}:")
+    return " ".join(found.group(1).split()).rstrip(".").replace("%", "%%")
+
+
+def _argument(hint: Any, flag: str) -> dict[str, Any]:
+    """argparse keywords for a field of type ``hint``: its type, choices for a ``Literal``,
+    ``nargs`` for a tuple; a bool is a switch (``--no-...`` turns it off)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType) and type(None) in args:
+        (hint,) = [a for a in args if a is not type(None)]
+        origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is bool:
+        if flag.startswith("no-"):
+            return {"action": "store_false"}
+        return {"action": argparse.BooleanOptionalAction}
+    if origin is Literal:
+        return {"type": type(args[0]), "choices": list(args)}
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
+        return {"type": args[0], "nargs": "+"}
+    if hint in (int, float, str):
+        return {"type": hint}
+    raise TypeError(f"no command-line flag for a field of type {hint} (--{flag})")
+
+
+def _leaf(config: object, path: str) -> tuple[object, str]:
+    """The dataclass instance holding the dotted field ``path`` of ``config``, and the name."""
+    *owners, name = path.split(".")
+    for owner in owners:
+        config = getattr(config, owner)
+    return config, name
+
+
+def _replaced(config: Any, path: str, value: Any) -> Any:
+    """``config`` with the dotted field ``path`` set to ``value`` (frozen dataclasses)."""
+    name, _, rest = path.partition(".")
+    if rest:
+        value = _replaced(getattr(config, name), rest, value)
+    return dataclasses.replace(config, **{name: value})
+
+
+@dataclass(frozen=True)
+class ConfigFlags:
+    """Command-line flags for the fields of a config dataclass.
+
+    Every top-level field of ``default`` that is a number, string, bool, ``Literal`` or tuple
+    becomes ``--field-name`` (type, default, choices and help from the class and its
+    docstring's ``:param:`` lines), except those in ``skip``; ``renames`` maps further flags
+    onto dotted field paths (nested ones, or several at once), taking type and help from the
+    first. A bool flag named ``no-...`` sets its fields to False.
+
+    :param default: the configuration the flags start from.
+    :param renames: flag name (without ``--``) -> the field paths it sets.
+    :param skip: top-level fields without a flag of their own.
+    """
+
+    default: Any
+    renames: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    skip: Collection[str] = ()
+
+    def table(self) -> dict[str, tuple[str, ...]]:
+        """Every flag name and the field paths it sets."""
+        covered = {path for paths in self.renames.values() for path in paths} | set(self.skip)
+        derived = {
+            f.name.replace("_", "-"): (f.name,)
+            for f in dataclasses.fields(self.default)
+            if f.name not in covered and not dataclasses.is_dataclass(getattr(self.default, f.name))
+        }
+        return {**derived, **self.renames}
+
+    def add_to(self, parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+        """Add the flags to ``parser``."""
+        for flag, paths in self.table().items():
+            owner, name = _leaf(self.default, paths[0])
+            default = getattr(owner, name)
+            text = _param_help(owner, name)
+            if not flag.startswith("no-"):
+                text += " (default %(default)s)"
+            parser.add_argument(
+                f"--{flag}",
+                default=default,
+                help=text,
+                **_argument(_field_hint(owner, name), flag),
+            )
+
+    def build(self, args: argparse.Namespace) -> Any:
+        """The configuration the parsed flags describe (its ``__post_init__`` checks apply)."""
+        config = self.default
+        for flag, paths in self.table().items():
+            value = getattr(args, flag.replace("-", "_"))
+            value = tuple(value) if isinstance(value, list) else value
+            for path in paths:
+                config = _replaced(config, path, value)
+        return config
+
+
+TASK_FLAGS = ConfigFlags(
+    TaskConfig(urdf=""),
+    renames={
+        "peg-length": ("peg.length",),
+        "peg-radius": ("peg.radius",),
+        "peg-axis": ("peg.axis",),
+        "q0": ("placement.q0",),
+        "friction": ("world.friction",),
+        "action-weight": ("cost.action_weight",),
+        "descent-height": ("cost.descent_height",),
+        "descent-steps": ("cost.descent_steps",),
+    },
+    skip=("urdf",),
+)
 
 
 def add_task_arguments(parser: argparse.ArgumentParser, default_urdf: str | None = None) -> None:
-    """Flags that pick the arm, its peg and its start pose."""
+    """Flags that pick the arm, its peg, its start pose, the world and the cost."""
     group = parser.add_argument_group("arm")
     group.add_argument(
         "--urdf", required=default_urdf is None, default=default_urdf, help="the arm's URDF file"
     )
-    group.add_argument(
-        "--ee-link",
-        default=None,
-        help="end-effector link (default: end of the longest actuated chain, "
-        "or 'peg_tip' when the URDF carries its own peg)",
-    )
-    peg = PegConfig()
-    group.add_argument(
-        "--peg-length",
-        type=float,
-        default=peg.length,
-        help="length (m) of the peg attached to arms without one",
-    )
-    group.add_argument(
-        "--peg-radius", type=float, default=peg.radius, help="radius (m) of the attached peg"
-    )
-    group.add_argument(
-        "--peg-axis",
-        default=peg.axis,
-        help="end-effector link axis the attached peg points along (x, y, z, -x, ...)",
-    )
-    group.add_argument(
-        "--q0",
-        type=float,
-        nargs="+",
-        default=None,
-        help="start pose (rad); default: derived by inverse kinematics",
-    )
-    group.add_argument(
-        "--friction",
-        type=float,
-        default=WorldConfig().friction,
-        help="lateral friction of the table and the hole (the original GPS example: "
-        "frictionless) (default %(default)s)",
-    )
-    cost = CostConfig()
-    group.add_argument(
-        "--action-weight",
-        type=float,
-        default=cost.action_weight,
-        help="torque cost wu_j = action_weight / effort_j^2 (default %(default)s)",
-    )
-    group.add_argument(
-        "--descent-height",
-        type=float,
-        default=cost.descent_height,
-        help="lift the cost's targets by this height (m) at t = 0, falling linearly to the "
-        "hole floor at --descent-steps, so the peg aligns over the hole before it goes down; "
-        "0 turns it off (default %(default)s)",
-    )
-    group.add_argument(
-        "--descent-steps",
-        type=int,
-        default=cost.descent_steps,
-        help="step at which the lifted targets reach the hole floor; 0 turns it off "
-        "(default %(default)s)",
-    )
+    TASK_FLAGS.add_to(group)
 
 
 def task_config(args: argparse.Namespace) -> TaskConfig:
-    """The :class:`TaskConfig` the arm flags describe."""
-    peg = PegConfig(length=args.peg_length, radius=args.peg_radius, axis=args.peg_axis)
-    placement = PlacementConfig(q0=tuple(args.q0) if args.q0 else None)
+    """The :class:`TaskConfig` the arm flags describe, its values checked."""
     if args.descent_height < 0.0 or args.descent_steps < 0:
         raise LolgpsError("--descent-height and --descent-steps must be >= 0")
-    cost = CostConfig(
-        action_weight=args.action_weight,
-        descent_height=args.descent_height,
-        descent_steps=args.descent_steps,
-    )
     if args.friction < 0.0:
         raise LolgpsError(f"--friction {args.friction}: must be >= 0")
-    world = WorldConfig(friction=args.friction)
-    return TaskConfig(
-        urdf=args.urdf, ee_link=args.ee_link, peg=peg, world=world, placement=placement, cost=cost
-    )
+    config: TaskConfig = TASK_FLAGS.build(args)
+    return dataclasses.replace(config, urdf=args.urdf)
+
+
+def check_device(name: str) -> torch.device:
+    """The torch device ``name``, checked usable here; otherwise a :class:`LolgpsError`."""
+    try:
+        device = torch.device(name)
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as error:
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else "unusable"
+        raise LolgpsError(f"--device {name}: {reason}") from None
+    return device
+
+
+def read_offsets(path: str, flag: str) -> list[Position]:
+    """The hole offsets in the JSON file ``path``: a non-empty list of ``[dx, dy]`` pairs of
+    finite numbers (m); anything else is a :class:`LolgpsError` naming ``flag``."""
+    try:
+        raw = json.loads(Path(path).read_text())
+        offsets = [(float(dx), float(dy)) for dx, dy in raw]
+    except OSError as error:
+        raise LolgpsError(f"{flag} {path}: {error.strerror or error}") from None
+    except (ValueError, TypeError) as error:
+        raise LolgpsError(f"{flag} {path}: expected a JSON list of [dx, dy] ({error})") from None
+    bad = [list(o) for o in offsets if not all(math.isfinite(v) for v in o)]
+    if bad:
+        raise LolgpsError(f"{flag} {path}: offsets must be finite numbers, got {bad[0]}")
+    if not offsets:
+        raise LolgpsError(f"{flag} {path} is empty")
+    return offsets
 
 
 def run(main: Callable[[], None]) -> None:

@@ -15,28 +15,15 @@ another run's summary.json for forward transfer.
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
-from pathlib import Path
 
-from lolgps_torch.cli import run
+from lolgps_torch.cli import read_offsets, run
+from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig
-from lolgps_torch.evaluation.evaluate import EVAL_FILE, evaluate_run, format_table
+from lolgps_torch.evaluation.evaluate import evaluate_run
 from lolgps_torch.evaluation.plot import plot_fig4
-
-FIGURE_FILE = "fig4.png"
-
-
-def read_positions(path: str) -> list[tuple[float, float]]:
-    """A JSON list of ``[dx, dy]`` pairs (m)."""
-    try:
-        data = json.loads(Path(path).read_text())
-        return [(float(dx), float(dy)) for dx, dy in data]
-    except OSError as error:
-        raise LolgpsError(f"cannot read {path}: {error.strerror or error}") from None
-    except (ValueError, TypeError) as error:
-        raise LolgpsError(f"{path} is not a JSON list of [dx, dy] pairs: {error}") from None
+from lolgps_torch.evaluation.table import format_table
 
 
 def main() -> None:
@@ -83,7 +70,7 @@ def main() -> None:
         raise LolgpsError(
             "--positions replaces the test areas: drop --areas/--per-area/--area-seed"
         )
-    positions = read_positions(args.positions) if args.positions is not None else None
+    positions = read_offsets(args.positions, "--positions") if args.positions else None
     areas = replace(defaults, **chosen) if positions is None else None
     evaluation = evaluate_run(
         args.run,
@@ -93,10 +80,10 @@ def main() -> None:
         scratch=args.scratch,
         batch_size=args.batch_size,
     )
-    figure = Path(args.run) / FIGURE_FILE
-    plot_fig4(evaluation, figure)
+    folder = RunFolder(args.run)
+    plot_fig4(evaluation, folder.figure_path)
     print(format_table(evaluation))
-    print(f"wrote {Path(args.run) / EVAL_FILE} and {figure}")
+    print(f"wrote {folder.eval_path} and {folder.figure_path}")
 
 
 if __name__ == "__main__":

@@ -5,24 +5,29 @@
 Each iteration samples N rollouts, fits the dynamics and takes the KL-constrained C-step.
 Per iteration it prints and appends to OUT/metrics.jsonl: mean cost, mean and best final
 tip distance, success rate, epsilon, eta and the time spent sampling, fitting and solving.
+OUT also gets config.json and arm.urdf (written once every flag, the folder and the hole's
+reachability are checked) and, at the end, summary.json.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
+from dataclasses import asdict
 
 import torch
 
-from lolgps_torch.cli import add_task_arguments, run, task_config
+from lolgps_torch.cli import ConfigFlags, add_task_arguments, check_device, run, task_config
+from lolgps_torch.data.records import IterationRecord
+from lolgps_torch.data.run_folder import RunFolder, as_stored, portable_urdf, task_json
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 
+LOCAL_FLAGS = ConfigFlags(LocalConfig())
 
-def main() -> None:
+
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -38,7 +43,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--iterations", type=int, default=15, help="iteration limit (default 15)")
-    parser.add_argument("--samples", type=int, default=5, help="rollouts per iteration (default 5)")
+    LOCAL_FLAGS.add_to(parser.add_argument_group("local learner"))
     parser.add_argument(
         "--stop-at-success",
         action="store_true",
@@ -46,60 +51,66 @@ def main() -> None:
     )
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
+    if args.iterations < 1:
+        raise LolgpsError(f"--iterations {args.iterations}: must be >= 1")
+    return args
 
-    torch.manual_seed(args.seed)
-    config = LocalConfig(samples=args.samples)
-    task = PegTask(task_config(args), n_worlds=args.samples, device=args.device)
-    offset = (args.hole[0], args.hole[1])
-    task.check_reachable(offset)
-    os.makedirs(args.out, exist_ok=True)
-    learner = LocalLearner(task, offset, config, seed=args.seed)
-    metrics_path = os.path.join(args.out, "metrics.jsonl")
-    with open(metrics_path, "w") as log:
-        for i in range(args.iterations):
-            it = learner.iteration()
-            s = it.samples
-            record = {
-                "iteration": i,
-                "mean_cost": float(s.cost.sum(1).mean()),
-                "mean_distance": float(s.final_distance.mean()),
-                "best_distance": float(s.final_distance.min()),
-                "success_rate": float(s.success.double().mean()),
-                "epsilon": it.epsilon,
-                "eta": it.eta,
-                "kl": it.kl,
-                "step_mult": it.step_mult,
-                "time_sample": it.time_sample,
-                "time_fit": it.time_fit,
-                "time_cstep": it.time_cstep,
-            }
-            log.write(json.dumps(record) + "\n")
-            log.flush()
-            print(
-                f"iter {i:2d}  cost {record['mean_cost']:9.2f}  dist mean {record['mean_distance']:.3f} "
-                f"best {record['best_distance']:.3f}  success {record['success_rate']:.0%}  "
-                f"eps {it.epsilon:.1f} eta {it.eta:.3g}  "
-                f"t {it.time_sample:.2f}/{it.time_fit:.2f}/{it.time_cstep:.2f} s",
-                flush=True,
-            )
-            if args.stop_at_success and record["success_rate"] >= 0.6:
-                break
+
+def _print(record: IterationRecord) -> None:
+    print(
+        f"iter {record.iteration:2d}  cost {record.mean_cost:9.2f}  "
+        f"dist mean {record.mean_distance:.3f} best {record.best_distance:.3f}  "
+        f"success {record.success_rate:.0%}  eps {record.epsilon:.1f} eta {record.eta:.3g}  "
+        f"t {record.time_sample:.2f}/{record.time_fit:.2f}/{record.time_cstep:.2f} s",
+        flush=True,
+    )
+
+
+def learn(learner: LocalLearner, folder: RunFolder, iterations: int, stop_at_success: bool) -> int:
+    """Iterate, logging each iteration; returns the number of iterations taken."""
+    for i in range(iterations):
+        _, _, record = iterate(learner, learner.p_cur, None, False, (0, i, 0.0))
+        folder.append_metrics(record.to_json())
+        _print(record)
+        if stop_at_success and record.success_rate >= 0.6:
+            break
     if not torch.isfinite(learner.p_cur.k).all():
         raise LolgpsError("the controller diverged (non-finite gains)")
-    zero = torch.zeros(1, task.T, task.layout.dU, dtype=torch.float64)
-    final = task.sample(linear_gaussian_actor(learner.p_cur, zero), [offset])
-    summary = {
-        "hole": list(offset),
-        "seed": args.seed,
-        "iterations": i + 1,
-        "noiseless_final_distance": float(final.final_distance[0]),
-    }
-    with open(os.path.join(args.out, "summary.json"), "w") as fh:
-        json.dump(summary, fh, indent=2)
-    print(
-        f"noiseless final distance of the last controller: {summary['noiseless_final_distance']:.4f} m"
+    return i + 1
+
+
+def main() -> None:
+    args = parse_args()
+    device = check_device(args.device)
+    config: LocalConfig = LOCAL_FLAGS.build(args)
+    tcfg, offset = task_config(args), (float(args.hole[0]), float(args.hole[1]))
+    folder, urdf_text = RunFolder(args.out), portable_urdf(args.urdf)
+    if folder.has_config():
+        raise LolgpsError(f"{folder.path} already holds a run; choose another --out")
+    folder.check_writable()
+    torch.manual_seed(args.seed)
+    task = PegTask(tcfg, n_worlds=config.samples, device=str(device))
+    try:
+        task.check_reachable(offset)
+        settings = {"hole": list(offset), "seed": args.seed, "iterations": args.iterations}
+        record = {**settings, "task": task_json(tcfg, urdf_text), "local": asdict(config)}
+        folder.start(as_stored(record), urdf_text)
+        learner = LocalLearner(task, offset, config, seed=args.seed)
+        taken = learn(learner, folder, args.iterations, args.stop_at_success)
+        zero = torch.zeros(1, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
+        final = task.sample(linear_gaussian_actor(learner.p_cur, zero), [offset])
+    finally:
+        task.close()
+    distance = float(final.final_distance[0])
+    folder.write_summary(
+        {
+            "hole": list(offset),
+            "seed": args.seed,
+            "iterations": taken,
+            "noiseless_final_distance": distance,
+        }
     )
-    task.close()
+    print(f"noiseless final distance of the last controller: {distance:.4f} m")
 
 
 if __name__ == "__main__":

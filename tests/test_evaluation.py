@@ -8,6 +8,7 @@ import math
 import multiprocessing
 import multiprocessing.spawn
 import runpy
+import shutil
 import subprocess
 import sys
 import types
@@ -18,8 +19,10 @@ from typing import Any
 import pytest
 import torch
 
+from lolgps_torch.data.checkpoint import save_policy
+from lolgps_torch.data.run_folder import RunFolder, portable_urdf, task_json
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.evaluation import evaluate as evaluate_module
+from lolgps_torch.evaluation import jobs as jobs_module
 from lolgps_torch.evaluation.areas import (
     AreaConfig,
     area_centres,
@@ -27,7 +30,8 @@ from lolgps_torch.evaluation.areas import (
     default_training_stream,
     sample_area_positions,
 )
-from lolgps_torch.evaluation.evaluate import EVAL_FILE, evaluate_run, format_table, run_jobs
+from lolgps_torch.evaluation.evaluate import evaluate_run
+from lolgps_torch.evaluation.jobs import run_jobs
 from lolgps_torch.evaluation.metrics import (
     aggregate,
     average_final_success,
@@ -40,7 +44,8 @@ from lolgps_torch.evaluation.metrics import (
     wilson_interval,
 )
 from lolgps_torch.evaluation.plot import plot_fig4
-from lolgps_torch.evaluation.worker import Job, RolloutSetup, run_worker
+from lolgps_torch.evaluation.table import format_table
+from lolgps_torch.evaluation.worker import Job, PolicyState, RolloutSetup, run_worker
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -214,23 +219,25 @@ def test_plot_writes_a_small_png(tmp_path: Path) -> None:
 
 
 def fabricate_run(folder: Path, method: str = "lolgps") -> None:
-    """config.json, summary.json and per-stage checkpoints of distinct untrained policies."""
+    """config.json (with the relative URDF path ``KUKA``), the URDF copy, summary.json and
+    per-stage checkpoints of distinct untrained policies."""
     conditions, stages = default_training_stream(AreaConfig(), seed=0)
+    urdf_text = portable_urdf(KUKA)
     config = {
-        "task": asdict(TaskConfig(urdf=KUKA)),
+        "task": task_json(TaskConfig(urdf=KUKA), urdf_text),
         "conditions": conditions,
         "stages": stages,
         "method": method,
         "seed": 0,
     }
-    folder.mkdir()
-    (folder / "config.json").write_text(json.dumps(config))
+    run = RunFolder(folder)
+    run.start(config, urdf_text)
     for stage in stages if method != "batch" else stages[-1:]:
         policy = GaussianPolicy(26, 7)
         with torch.no_grad():
             for p in policy.parameters():
                 p.mul_(0.5 + 0.2 * stage["last_condition"])
-        policy.save(folder / "checkpoints" / f"after_condition_{stage['last_condition']:03d}")
+        save_policy(run.checkpoint_dir(stage["last_condition"]), policy)
     summary = [
         {"condition": c, "offset": list(o), "iterations": 4, "first_success_iteration": c % 3}
         for c, o in enumerate(conditions)
@@ -246,9 +253,9 @@ def test_evaluation_is_identical_for_one_and_two_workers(
     areas = AreaConfig(n_areas=2, positions_per_area=2)
     one = evaluate_run(run, workers=1, areas=areas, batch_size=3, scratch=run)
     # this process claims no job, so the spawned worker runs them all
-    monkeypatch.setattr(evaluate_module, "next_job", lambda counter, n_jobs: None)
+    monkeypatch.setattr(jobs_module, "next_job", lambda counter, n_jobs: None)
     two = evaluate_run(run, workers=2, areas=areas, batch_size=3)
-    written = json.loads((run / EVAL_FILE).read_text())
+    written = json.loads(RunFolder(run).eval_path.read_text())
     assert [s["per_position"] for s in one["stages"]] == [s["per_position"] for s in two["stages"]]
     assert one["stages"] == two["stages"] == written["stages"]
     assert [s["name"] for s in one["stages"]] == ["train0", "train1", "train2"]
@@ -263,6 +270,27 @@ def test_evaluation_is_identical_for_one_and_two_workers(
     assert one["metrics"]["forward_transfer"][1]["ratio"] == 1.0
     assert two["metrics"]["forward_transfer"][1]["ratio"] is None  # no scratch run given
     assert "area 1" in format_table(one)
+
+
+def test_a_copied_run_folder_evaluates_alike_from_elsewhere(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The run folder keeps its URDF: copied elsewhere and evaluated from another working
+    directory (where its recorded relative URDF path does not exist), it gives the same
+    eval.json as in place."""
+    run = tmp_path / "run"
+    fabricate_run(run)
+    positions = [(0.0, 0.0), (0.01, -0.02)]
+    evaluate_run(run, positions=positions)
+    copy = tmp_path / "other" / "run"
+    shutil.copytree(run, copy)
+    (copy / "eval.json").unlink()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert not Path(KUKA).exists()
+    evaluate_run(copy, positions=positions)
+    assert (copy / "eval.json").read_text() == (run / "eval.json").read_text()
 
 
 def test_positions_mode_and_batch_runs(tmp_path: Path) -> None:
@@ -309,14 +337,13 @@ def test_script_prints_one_error_line(
     assert len(err) == 1 and err[0].startswith("error: ")
 
 
-def test_scores_equal_those_of_the_task_itself(tmp_path: Path) -> None:
+def test_scores_equal_those_of_the_task_itself() -> None:
     """Rollouts in a worker's worlds, scored by the main process, give what PegTask.sample
     gives for the same policy and positions."""
     policy = GaussianPolicy(26, 7)
-    policy.save(tmp_path)
     positions = ((0.0, 0.0), (0.01, -0.02))
     config = TaskConfig(urdf=KUKA)
-    [result] = run_jobs(asdict(config), [Job(str(tmp_path), positions)], 1, 2)
+    [result] = run_jobs(config, [PolicyState.of("p", policy)], [Job(0, positions)], 1, 2)
     task = PegTask(config, n_worlds=2)
     try:
         with torch.no_grad():
@@ -328,13 +355,13 @@ def test_scores_equal_those_of_the_task_itself(tmp_path: Path) -> None:
     assert result.success == samples.success.tolist()
 
 
-def test_a_worker_error_reaches_the_caller(tmp_path: Path) -> None:
+def test_a_worker_error_reaches_the_caller() -> None:
     """The worker loop run in this process: its error crosses the queue to the collector."""
-    GaussianPolicy(20, 7).save(tmp_path)  # a state size the task does not have
-    jobs = [Job(str(tmp_path), ((0.0, 0.0),))]
+    wrong = PolicyState.of("wrong", GaussianPolicy(20, 7))  # a state size the task lacks
+    jobs = [Job(0, ((0.0, 0.0),))]
     task = PegTask(TaskConfig(urdf=KUKA), n_worlds=1)
     setup = RolloutSetup(
-        task.arm, task.config.world, task.geometry.nominal_mouth, task.geometry.q0, 1
+        task.arm, task.config.world, task.geometry.nominal_mouth, task.geometry.q0, 1, (wrong,)
     )
     task.close()
     context = multiprocessing.get_context("spawn")
@@ -342,7 +369,7 @@ def test_a_worker_error_reaches_the_caller(tmp_path: Path) -> None:
     setups.put(setup)
     run_worker(setups, jobs, counter, results)
     with pytest.raises(LolgpsError, match="policy maps 20 -> 7 dims"):
-        list(evaluate_module._collect(results, {0}, []))
+        list(jobs_module._collect(results, {0}, []))
 
 
 def test_the_worker_imports_neither_kinematics_nor_urdf_parsing() -> None:
@@ -365,7 +392,7 @@ def test_spawned_workers_do_not_rerun_the_main_script(monkeypatch: pytest.Monkey
     main.__file__ = str(SCRIPT)
     monkeypatch.setitem(sys.modules, "__main__", main)
     assert "init_main_from_path" in multiprocessing.spawn.get_preparation_data("worker")
-    with evaluate_module._main_script_hidden():
+    with jobs_module._main_script_hidden():
         hidden = multiprocessing.spawn.get_preparation_data("worker")
     assert "init_main_from_path" not in hidden and "init_main_from_name" not in hidden
     assert main.__file__ == str(SCRIPT) and main.__spec__ is None

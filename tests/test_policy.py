@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 from torch.distributions import MultivariateNormal, kl_divergence
@@ -260,38 +258,6 @@ def test_linearize_follows_a_nonlinear_policy_over_time() -> None:
     w = torch.tensor([1.0, -0.5], dtype=F64)
     jacobian = (1 - torch.tanh(centres @ w) ** 2)[:, None, None] * w  # [T, 1, 2]
     assert torch.allclose(p_pre.K, jacobian, atol=0.01)
-
-
-def test_save_load_round_trip(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    config = PolicyConfig(hidden_sizes=(8, 6), steps=30, seed=4)
-    policy = GaussianPolicy(3, 2, config)
-    batch, _ = nonlinear_batch(M=100, seed=10)
-    distill(policy, batch)
-    policy.save(tmp_path / "ckpt")
-    assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == ["policy.json", "policy.pt"]
-    calls: list[dict[str, object]] = []
-    real_load = torch.load
-
-    def recording_load(*args: object, **kwargs: object) -> object:
-        calls.append(kwargs)
-        return real_load(*args, **kwargs)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(torch, "load", recording_load)
-    loaded = GaussianPolicy.load(tmp_path / "ckpt")
-    assert [call.get("weights_only") for call in calls] == [True]
-    assert loaded.config == config and loaded.trained
-    x = torch.randn(7, 5, 3, dtype=F64)
-    assert torch.equal(loaded(x), policy(x))
-    assert torch.equal(loaded.covariance(), policy.covariance())
-
-
-def test_load_of_a_corrupt_checkpoint_raises(tmp_path: Path) -> None:
-    GaussianPolicy(2, 1).save(tmp_path)
-    (tmp_path / "policy.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(LolgpsError, match="cannot load policy"):
-        GaussianPolicy.load(tmp_path)
-    with pytest.raises(LolgpsError, match="cannot load policy"):
-        GaussianPolicy.load(tmp_path / "missing")
 
 
 def test_kl_loss_rejects_an_indefinite_precision() -> None:

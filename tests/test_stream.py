@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from lolgps_torch.data import ReplayBuffer
-from lolgps_torch.policy import GaussianPolicy
+from lolgps_torch.data.checkpoint import load_policy
 
 SCRIPT = [sys.executable, "scripts/run_stream.py", "--urdf", "robots/kuka_peg.urdf"]
 SMALL = ["--max-iterations", "7", "--success-phases", "1", "--distill-steps", "200"]
@@ -51,7 +51,7 @@ def test_ci_stream_distils_and_replays_both_conditions(small_run: Path) -> None:
     assert summary[0]["first_success_iteration"] is not None
     assert summary[0]["local_success"]
     for index in (0, 1):
-        policy = GaussianPolicy.load(out / "checkpoints" / f"after_condition_{index:03d}")
+        policy = load_policy(out / "checkpoints" / f"after_condition_{index:03d}")
         assert policy.trained
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     iterations = [r for r in records if "iteration" in r]
@@ -109,7 +109,7 @@ def test_existing_run_without_resume_is_refused(small_run: Path) -> None:
 
 def test_redistill_refits_and_tests_a_finished_run(small_run: Path, tmp_path: Path) -> None:
     out = tmp_path / "refit"
-    cmd = [sys.executable, "scripts/redistill.py", "--run", str(small_run / "run")]
+    cmd = [sys.executable, "scripts/research/redistill.py", "--run", str(small_run / "run")]
     proc = subprocess.run(
         [*cmd, "--steps", "50", "--out", str(out)], capture_output=True, text=True, timeout=300
     )
@@ -117,13 +117,13 @@ def test_redistill_refits_and_tests_a_finished_run(small_run: Path, tmp_path: Pa
     lines = proc.stdout.strip().splitlines()
     assert lines[0].startswith("fitted ") and lines[-1].startswith("training positions ")
     assert sum(line.startswith("condition ") for line in lines) == 2
-    assert GaussianPolicy.load(out).trained
+    assert load_policy(out).trained
     bad = subprocess.run([*cmd, "--steps", "0"], capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and bad.stderr.strip().startswith("error: ")
 
 
 def test_trace_policy_prints_rollout_and_fit_per_condition(small_run: Path) -> None:
-    cmd = [sys.executable, "scripts/trace_policy.py", "--run", str(small_run / "run")]
+    cmd = [sys.executable, "scripts/research/trace_policy.py", "--run", str(small_run / "run")]
     proc = subprocess.run([*cmd, "--steps", "0", "5"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = proc.stdout.strip().splitlines()
@@ -145,7 +145,8 @@ def test_trace_policy_prints_rollout_and_fit_per_condition(small_run: Path) -> N
 def test_trace_policy_traces_an_areas_misses(small_run: Path, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     shutil.copytree(small_run / "run", run_dir)
-    cmd = [sys.executable, "scripts/trace_policy.py", "--run", str(run_dir), "--area-misses", "1"]
+    trace = [sys.executable, "scripts/research/trace_policy.py", "--run", str(run_dir)]
+    cmd = [*trace, "--area-misses", "1"]
     missing = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert missing.returncode == 2 and missing.stderr.strip().startswith(
         f"error: {run_dir}/eval.json: no test area 1 to trace"

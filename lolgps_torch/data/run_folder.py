@@ -1,6 +1,7 @@
 """The run folder: one place that knows where a run keeps what, and writes it atomically.
 
     <run>/config.json                          the resolved configuration (written once)
+    <run>/arm.urdf                             the arm's URDF, mesh paths made absolute
     <run>/metrics.jsonl                        one record per iteration and per S-step
     <run>/replay.h5                            D_g of every finished condition
     <run>/checkpoints/after_condition_XXX/     the global policy after condition XXX,
@@ -10,23 +11,35 @@
 
 A condition is complete once its replay group exists; its checkpoint and entry are written
 before it (see :class:`lolgps_torch.lolgps.stream.StreamLearner`).
+
+A run folder stands alone: everything that loads a run builds its task from ``arm.urdf``
+(checked against ``task.urdf_sha256`` in config.json), not from the path the user gave,
+which config.json keeps for display.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import tempfile
+import xml.etree.ElementTree as ET
 from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.robot.validate import resolve_mesh
+from lolgps_torch.task import TaskConfig, task_config_from_dict
 
 CONFIG_FILE = "config.json"
+URDF_FILE = "arm.urdf"
 SUMMARY_FILE = "summary.json"
 METRICS_FILE = "metrics.jsonl"
 REPLAY_FILE = "replay.h5"
 EVAL_FILE = "eval.json"
+FIGURE_FILE = "fig4.png"
 CHECKPOINT_DIR = "checkpoints"
 ENTRY_FILE = "entry.json"
 
@@ -74,6 +87,84 @@ def read_json(path: str | Path) -> Any:
         raise LolgpsError(f"corrupt {path}: {error}") from None
 
 
+def portable_urdf(path: str) -> str:
+    """The URDF at ``path`` as text that reads the same from any folder: every mesh filename
+    that resolves beside it (:func:`~lolgps_torch.robot.validate.resolve_mesh`) made absolute;
+    without such meshes, the file's text unchanged. PyBullet and yourdfpy accept absolute
+    filenames."""
+    try:
+        text = Path(path).read_text()
+        tree = ET.fromstring(text)
+    except OSError as error:
+        raise LolgpsError(f"cannot read URDF {path}: {error.strerror or error}") from None
+    except ET.ParseError as error:
+        raise LolgpsError(f"{path}: malformed XML ({error})") from None
+    base_dir, changed = os.path.dirname(os.path.abspath(path)), False
+    for mesh in tree.iter("mesh"):
+        resolved = resolve_mesh(mesh.get("filename", ""), base_dir)
+        if resolved is not None and resolved != mesh.get("filename"):
+            mesh.set("filename", os.path.abspath(resolved))
+            changed = True
+    return ET.tostring(tree, encoding="unicode") if changed else text
+
+
+def as_stored(data: Any) -> Any:
+    """``data`` as it reads back from JSON (tuples become lists), for comparing with a file."""
+    return json.loads(json.dumps(data))
+
+
+def task_json(task: TaskConfig, urdf_text: str) -> dict[str, Any]:
+    """``task`` as config.json stores it: its fields (the user's URDF path for display) and
+    ``urdf_sha256``, the SHA-256 of the run folder's copy ``urdf_text``."""
+    digest = hashlib.sha256(urdf_text.encode()).hexdigest()
+    stored: dict[str, Any] = as_stored({**asdict(task), "urdf_sha256": digest})
+    return stored
+
+
+def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    """The leaves of nested dicts, keyed by their dotted paths (``{"a": {"b": 1}}`` ->
+    ``{"a.b": 1}``)."""
+    if not isinstance(data, dict):
+        return {prefix: data}
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        out.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def config_differences(saved: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """``"key.path: saved (saved) vs now (now)"`` for every leaf where two configurations
+    differ (a key missing on one side shows as None)."""
+    old, new = flatten(saved), flatten(now)
+    return [
+        f"{key}: {old.get(key)} (saved) vs {new.get(key)} (now)"
+        for key in sorted(old.keys() | new.keys())
+        if old.get(key) != new.get(key)
+    ]
+
+
+Position = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """What a run's config.json says, checked.
+
+    :param task: the task, built from the run folder's URDF copy (the recorded path for runs
+        made before runs kept one).
+    :param conditions: the hole offsets ``(dx, dy)`` (m) in stream order.
+    :param stages: ``{"name", "last_condition"}`` per training stage, in order.
+    :param stream: the stream's settings as saved (``asdict(StreamConfig)``).
+    """
+
+    task: TaskConfig
+    conditions: list[Position]
+    stages: list[dict[str, Any]]
+    method: str
+    seed: int
+    stream: dict[str, Any]
+
+
 class RunFolder:
     """Paths and JSON I/O of one run folder (layout in the module docstring).
 
@@ -103,12 +194,85 @@ class RunFolder:
     def eval_path(self) -> Path:
         return self.path / EVAL_FILE
 
+    @property
+    def figure_path(self) -> Path:
+        return self.path / FIGURE_FILE
+
     def checkpoint_dir(self, condition: int) -> Path:
         """The folder of the global policy saved after ``condition``."""
         return self.path / CHECKPOINT_DIR / f"after_condition_{condition:03d}"
 
     def entry_path(self, condition: int) -> Path:
         return self.checkpoint_dir(condition) / ENTRY_FILE
+
+    @property
+    def urdf_path(self) -> Path:
+        return self.path / URDF_FILE
+
+    def check_writable(self) -> None:
+        """Raise :class:`LolgpsError` unless a run can be written here: probe the folder (or
+        its nearest existing parent) with a temporary folder, removed again, so a failed check
+        leaves nothing behind."""
+        probe = self.path
+        while not probe.exists():
+            probe = probe.parent
+        if not probe.is_dir():
+            raise LolgpsError(f"cannot create {self.path}: {probe} is not a folder")
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".probe-", dir=probe))
+        except OSError as error:
+            raise LolgpsError(f"cannot write to {self.path}: {error.strerror or error}") from None
+
+    def start(self, config: dict[str, Any], urdf_text: str) -> None:
+        """Create the run: the arm's URDF copy, then config.json (which marks the run as
+        existing, so it is written last)."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        atomic_write(self.urdf_path, lambda tmp: tmp.write_text(urdf_text))
+        self.write_config(config)
+
+    def task_config(self, task: dict[str, Any]) -> TaskConfig:
+        """The :class:`TaskConfig` of ``task`` (config.json's ``task``) with the URDF read from
+        this folder's copy, checked against ``urdf_sha256``; runs without a copy keep the
+        recorded path."""
+        config = task_config_from_dict(task)
+        if not self.urdf_path.is_file():
+            return config
+        digest = hashlib.sha256(self.urdf_path.read_bytes()).hexdigest()
+        if digest != task.get("urdf_sha256"):
+            raise LolgpsError(f"{self.urdf_path} does not match its SHA-256 in config.json")
+        return replace(config, urdf=str(self.urdf_path.resolve()))
+
+    def read_run(self) -> RunInfo:
+        """config.json, checked: a missing folder or file, a malformed entry or stages that do
+        not end at increasing conditions are a :class:`LolgpsError`."""
+        if not self.path.is_dir():
+            raise LolgpsError(f"run folder not found: {self.path}")
+        config = self.read_config()
+        try:
+            conditions = [(float(dx), float(dy)) for dx, dy in config["conditions"]]
+            stages: list[dict[str, Any]] = [
+                {"name": str(s["name"]), "last_condition": int(s["last_condition"])}
+                for s in config["stages"]
+            ]
+            info = RunInfo(
+                self.task_config(config["task"]),
+                conditions,
+                stages,
+                str(config["method"]),
+                int(config["seed"]),
+                dict(config.get("stream", {})),
+            )
+        except (ValueError, KeyError, TypeError, AttributeError) as error:
+            raise LolgpsError(
+                f"corrupt {self.config_path}: {type(error).__name__}: {error}"
+            ) from None
+        lasts = [s["last_condition"] for s in stages]
+        if not lasts or lasts != sorted(set(lasts)) or not 0 <= lasts[-1] < len(conditions):
+            raise LolgpsError(
+                f"corrupt {self.config_path}: stages must end at increasing conditions below "
+                f"{len(conditions)}, got last_condition {lasts}"
+            )
+        return info
 
     def has_config(self) -> bool:
         return self.config_path.is_file()
@@ -139,6 +303,21 @@ class RunFolder:
 
     def write_entry(self, condition: int, entry: dict[str, Any]) -> None:
         write_json(self.entry_path(condition), entry)
+
+    def read_metrics(self) -> list[dict[str, Any]]:
+        """Every line of ``metrics.jsonl`` (a torn last line, from a kill, is left out)."""
+        try:
+            lines = self.metrics_path.read_text().splitlines()
+        except OSError as error:
+            raise LolgpsError(f"cannot read {self.metrics_path}: {error.strerror}") from None
+        records = []
+        for number, line in enumerate(lines):
+            try:
+                records.append(json.loads(line))
+            except ValueError:
+                if number < len(lines) - 1:
+                    raise LolgpsError(f"corrupt {self.metrics_path}: line {number + 1}") from None
+        return records
 
     def append_metrics(self, record: dict[str, Any]) -> None:
         """One line of ``metrics.jsonl`` (appended and flushed; a torn last line is harmless,

@@ -7,7 +7,6 @@ Drawn on an Agg canvas without pyplot, so no global backend state changes.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -16,6 +15,8 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
+
+from lolgps_torch.data.run_folder import atomic_write
 
 
 def _errors(stats: Sequence[dict[str, Any]]) -> list[list[float]]:
@@ -153,10 +154,4 @@ def plot_fig4(
     _draw_map(layout, evaluation, colours, conditions)
     figure.suptitle(f"{evaluation['method']} (seed {evaluation['seed']})", fontsize=11)
     figure.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.name + ".partial.png")
-    try:
-        figure.savefig(tmp, dpi=100)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write(path, lambda tmp: figure.savefig(tmp, dpi=100, format="png"))

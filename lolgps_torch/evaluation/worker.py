@@ -1,20 +1,22 @@
 """The rollout side of the evaluation: noiseless rollouts of checkpointed global policies.
 
-The main process builds the full :class:`~lolgps_torch.task.PegTask` and scores every rollout;
-a spawned worker only steps physics and runs the policy. It receives the main task's arm,
-world settings and geometry as plain data (:class:`RolloutSetup`), builds its own worlds (a
-PyBullet client cannot be pickled) and returns states, actions and final tip distances. So
-that its start-up stays short, this module imports neither pytorch_kinematics nor
-yourdfpy/trimesh, directly or through the modules it uses.
+The main process builds the full :class:`~lolgps_torch.task.PegTask`, loads the checkpoints
+and scores every rollout; a spawned worker only steps physics and runs the policies. It
+receives the main task's arm, world settings and geometry and the policies' weights as plain
+data (:class:`RolloutSetup`), builds its own worlds (a PyBullet client cannot be pickled) and
+returns states, actions and final tip distances; it reads no files. So that its start-up stays
+short, this module imports neither pytorch_kinematics nor yourdfpy/trimesh, directly or
+through the modules it uses.
 """
 
 from __future__ import annotations
 
 import multiprocessing.queues
 import traceback
+from collections.abc import Sequence
 from dataclasses import dataclass
 from multiprocessing.sharedctypes import Synchronized
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -31,10 +33,29 @@ Position = tuple[float, float]
 
 
 class Job(NamedTuple):
-    """One batch of rollouts: a checkpoint folder and the hole offsets to run it at."""
+    """One batch of rollouts: the index of a policy in :attr:`RolloutSetup.policies` and the
+    hole offsets to run it at."""
 
-    checkpoint: str
+    policy: int
     positions: tuple[Position, ...]
+
+
+class PolicyState(NamedTuple):
+    """A global policy as plain data: its name (for messages), its
+    :meth:`GaussianPolicy.description` and its state dict as arrays."""
+
+    name: str
+    description: dict[str, Any]
+    state: dict[str, np.ndarray]
+
+    @classmethod
+    def of(cls, name: str, policy: GaussianPolicy) -> PolicyState:
+        state = {key: value.detach().cpu().numpy() for key, value in policy.state_dict().items()}
+        return cls(name, policy.description(), state)
+
+    def build(self) -> GaussianPolicy:
+        state = {key: torch.from_numpy(value) for key, value in self.state.items()}
+        return GaussianPolicy.from_state(self.description, state)
 
 
 class Rollouts(NamedTuple):
@@ -62,6 +83,7 @@ class RolloutSetup:
     :param nominal_mouth: the nominal hole mouth (m) from the task's placement.
     :param q0: the start pose (rad) from the task's placement.
     :param n_worlds: worlds stepped in lockstep (the batch size).
+    :param policies: the policies the jobs run.
     """
 
     arm: ArmSpec
@@ -69,6 +91,7 @@ class RolloutSetup:
     nominal_mouth: tuple[float, float, float]
     q0: tuple[float, ...]
     n_worlds: int
+    policies: tuple[PolicyState, ...]
 
     def sampler(self) -> Sampler:
         """A new pool of ``n_worlds`` worlds in this process."""
@@ -76,30 +99,25 @@ class RolloutSetup:
 
 
 class PolicyRoller:
-    """Noiseless rollouts (``u_t = mu_theta(x_t)``) of checkpointed global policies in the
-    worlds of ``sampler``, whose states and actions are laid out by ``layout``. The sampler
-    stays its owner's to close."""
+    """Noiseless rollouts (``u_t = mu_theta(x_t)``) of global policies in the worlds of
+    ``sampler``, whose states and actions are laid out by ``layout``; a policy of other sizes
+    is a :class:`LolgpsError`. The sampler stays its owner's to close."""
 
-    def __init__(self, sampler: Sampler, layout: StateLayout) -> None:
+    def __init__(
+        self, sampler: Sampler, layout: StateLayout, policies: Sequence[PolicyState]
+    ) -> None:
         self.sampler = sampler
-        self.layout = layout
-        self.policies: dict[str, GaussianPolicy] = {}
-
-    def policy(self, checkpoint: str) -> GaussianPolicy:
-        """The policy saved in ``checkpoint`` (loaded once), checked against the state layout."""
-        if checkpoint not in self.policies:
-            policy = GaussianPolicy.load(checkpoint)
-            if (policy.dX, policy.dU) != (self.layout.dX, self.layout.dU):
+        self.policies = [state.build().eval() for state in policies]
+        for state, policy in zip(policies, self.policies, strict=True):
+            if (policy.dX, policy.dU) != (layout.dX, layout.dU):
                 raise LolgpsError(
-                    f"{checkpoint}: policy maps {policy.dX} -> {policy.dU} dims, the run's task "
-                    f"has states of {self.layout.dX} and actions of {self.layout.dU}"
+                    f"{state.name}: policy maps {policy.dX} -> {policy.dU} dims, the run's task "
+                    f"has states of {layout.dX} and actions of {layout.dU}"
                 )
-            self.policies[checkpoint] = policy.eval()
-        return self.policies[checkpoint]
 
     def __call__(self, job: Job) -> Rollouts:
         """One rollout per position of ``job``."""
-        actor = policy_actor(self.policy(job.checkpoint))
+        actor = policy_actor(self.policies[job.policy])
         x, u, final = self.sampler.rollout(actor, list(job.positions))
         return Rollouts(x.numpy(), u.numpy(), final.numpy())
 
@@ -124,7 +142,7 @@ def run_worker(
     torch.set_num_threads(1)
     try:
         setup = setups.get()
-        roller = PolicyRoller(setup.sampler(), StateLayout(setup.arm.dof))
+        roller = PolicyRoller(setup.sampler(), StateLayout(setup.arm.dof), setup.policies)
         while (index := next_job(counter, len(jobs))) is not None:
             results.put((index, roller(jobs[index])))
     except LolgpsError as error:

@@ -6,22 +6,14 @@ time) pass through. Parameters and buffers are float64.
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import pickle
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
-
-WEIGHTS_FILE = "policy.pt"
-CONFIG_FILE = "policy.json"
 
 
 @dataclass(frozen=True)
@@ -69,19 +61,6 @@ def _mlp(
             linear.bias.uniform_(-bound, bound, generator=generator)
         layers += [linear, torch.nn.ReLU()]
     return torch.nn.Sequential(*layers[:-1])
-
-
-def _write_atomic(path: Path, write: Callable[[Path], object]) -> None:
-    """Write ``path`` through a temporary sibling and ``os.replace``, so readers never see a
-    partial file. ``write`` is called with the temporary path."""
-    tmp = path.with_name(path.name + ".partial")
-    try:
-        write(tmp)
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 class GaussianPolicy(torch.nn.Module):
@@ -178,37 +157,3 @@ class GaussianPolicy(torch.nn.Module):
             text = str(error).strip()
             raise LolgpsError(text.splitlines()[0] if text else repr(error)) from None
         return policy.to(device)
-
-    def save(self, directory: str | Path) -> None:
-        """Write ``policy.pt`` (the state dict) and ``policy.json`` (dX, dU, config) into
-        ``directory`` (created if missing), each atomically."""
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        state = {name: tensor.detach().cpu() for name, tensor in self.state_dict().items()}
-        _write_atomic(directory / WEIGHTS_FILE, lambda tmp: torch.save(state, tmp))
-        meta = json.dumps({"dX": self.dX, "dU": self.dU, "config": asdict(self.config)}, indent=2)
-        _write_atomic(directory / CONFIG_FILE, lambda tmp: tmp.write_text(meta + "\n"))
-
-    @classmethod
-    def load(cls, directory: str | Path, device: torch.device | str = "cpu") -> GaussianPolicy:
-        """Rebuild a policy saved by :meth:`save` (weights loaded with ``weights_only=True``)."""
-        directory = Path(directory)
-        try:
-            meta = json.loads((directory / CONFIG_FILE).read_text())
-            config = PolicyConfig(
-                **{**meta["config"], "hidden_sizes": tuple(meta["config"]["hidden_sizes"])}
-            )
-            policy = cls(int(meta["dX"]), int(meta["dU"]), config, device)
-            state = torch.load(directory / WEIGHTS_FILE, map_location=device, weights_only=True)
-            policy.load_state_dict(state)
-        except (
-            OSError,
-            ValueError,
-            KeyError,
-            TypeError,
-            RuntimeError,
-            pickle.UnpicklingError,
-        ) as error:
-            message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
-            raise LolgpsError(f"cannot load policy from {directory}: {message}") from error
-        return policy

@@ -1,6 +1,6 @@
 """Benchmarks, each reported as a ratio to a reference measured in the same run.
 
-    python scripts/bench.py [--urdf robots/kuka_peg.urdf] [--repeats 5] [--only NAME ...]
+    python scripts/bench/bench.py [--urdf robots/kuka_peg.urdf] [--repeats 5] [--only NAME ...]
 
 - physics:   raw PyBullet stepping rate of this world (substeps/s: the same worlds, the arm
              held at q0 by constant gravity torques sent every substep, nothing else) against
@@ -26,8 +26,9 @@ import torch
 
 import lolgps_torch.sim.world as world_module
 from lolgps_torch.cli import run
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
-from lolgps_torch.lolgps.stream import StreamConfig, StreamLearner
+from lolgps_torch.data.run_folder import RunFolder
+from lolgps_torch.lolgps import StreamConfig, make_learner
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -85,7 +86,7 @@ def bench_algorithm(task: PegTask, repeats: int) -> dict[str, float]:
     learner = LocalLearner(task, (0.0, 0.0), LocalConfig(samples=len(task.sampler.worlds)), seed=0)
     rows = []
     for _ in range(max(repeats, 5)):
-        it = learner.iteration()
+        _, _, it = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
         rows.append((it.time_sample, it.time_fit, it.time_cstep))
     rows = rows[1:]  # the first iteration has no warm-started GMM
     sample = statistics.median(r[0] for r in rows)
@@ -125,7 +126,7 @@ def bench_stream(task: PegTask, repeats: int) -> dict[str, float]:
     try:
         with tempfile.TemporaryDirectory() as out:
             config = StreamConfig(success_phases=3, max_iterations=10)
-            learner = StreamLearner(task, config, out, lambda record: None)
+            learner = make_learner("lolgps", task, config, RunFolder(out), lambda record: None)
             t0 = time.perf_counter()
             learner.run([(0.0, 0.0), (0.01, -0.01)], lambda entry: None)
             wall = time.perf_counter() - t0

@@ -1,12 +1,12 @@
 """Benchmark of the evaluation's parallelism: the same noiseless rollouts of one policy at N test
 positions with one worker (in this process) and with several spawned workers.
 
-    python scripts/bench_eval.py [--urdf robots/kuka_peg.urdf] [--positions 60] [--workers 2]
-                                 [--repeats 3] [--checkpoint DIR]
+    python scripts/bench/bench_eval.py [--urdf robots/kuka_peg.urdf] [--positions 60]
+                                       [--workers 2] [--repeats 3] [--checkpoint DIR]
 
-Times are end to end, as ``evaluate_run`` spends them: building the task (and starting the
-extra processes, each of which imports torch and builds its worlds) plus the rollouts and
-their scoring.
+Times are end to end, as ``evaluate_run`` spends them after loading the checkpoints: building
+the task (and starting the extra processes, each of which imports torch and builds its
+worlds) plus the rollouts and their scoring.
 Medians over ``repeats``, the two settings interleaved so drifting load hits both alike; the
 speed-up is ``t_1 / t_workers``. On a shared machine compare the ratio, not the seconds.
 """
@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import tempfile
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 
 from lolgps_torch.cli import run
+from lolgps_torch.data.checkpoint import load_policy
 from lolgps_torch.evaluation.areas import AreaConfig, sample_area_positions
-from lolgps_torch.evaluation.evaluate import Job, run_jobs
+from lolgps_torch.evaluation.jobs import run_jobs
+from lolgps_torch.evaluation.worker import Job, PolicyState
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.state import StateLayout
@@ -46,21 +47,20 @@ def bench_eval(
     per_area = max(areas.positions_per_area, -(-n_positions // areas.n_areas))
     sampled = sample_area_positions(replace(areas, positions_per_area=per_area))
     positions = [(p[0], p[1]) for p in sampled.reshape(-1, 2).tolist()][:n_positions]
-    with tempfile.TemporaryDirectory() as scratch:
-        if checkpoint is None:
-            layout = StateLayout(load_arm(task.urdf, task.ee_link, task.peg).dof)
-            GaussianPolicy(layout.dX, layout.dU).save(scratch)
-            checkpoint = scratch
-        jobs = [
-            Job(checkpoint, tuple(positions[i : i + batch_size]))
-            for i in range(0, len(positions), batch_size)
-        ]
-        times: dict[int, list[float]] = {1: [], workers: []}
-        for _ in range(repeats):
-            for n in times:
-                t0 = time.perf_counter()
-                run_jobs(asdict(task), jobs, n, batch_size)
-                times[n].append(time.perf_counter() - t0)
+    if checkpoint is None:
+        layout = StateLayout(load_arm(task.urdf, task.ee_link, task.peg).dof)
+        policy = PolicyState.of("untrained", GaussianPolicy(layout.dX, layout.dU))
+    else:
+        policy = PolicyState.of(checkpoint, load_policy(checkpoint))
+    jobs = [
+        Job(0, tuple(positions[i : i + batch_size])) for i in range(0, len(positions), batch_size)
+    ]
+    times: dict[int, list[float]] = {1: [], workers: []}
+    for _ in range(repeats):
+        for n in times:
+            t0 = time.perf_counter()
+            run_jobs(task, [policy], jobs, n, batch_size)
+            times[n].append(time.perf_counter() - t0)
     one, many = statistics.median(times[1]), statistics.median(times[workers])
     return {
         "positions": float(len(positions)),

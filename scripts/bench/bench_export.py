@@ -1,6 +1,6 @@
 """Throughput of the dataset exports on a synthetic run of realistic size.
 
-    python scripts/bench_export.py            # 8 conditions x 45 trajectories x T=100, 7 joints
+    python scripts/bench/bench_export.py      # 8 conditions x 45 trajectories x T=100, 7 joints
 
 Builds a run folder (config.json for robots/kuka_peg.urdf, dX = 26, dU = 7, and a replay of
 random float64 data, which compresses worse than real trajectories) in a temporary folder,
@@ -11,10 +11,9 @@ exported arrays per second of wall time; the output size on disk is printed alon
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -27,12 +26,13 @@ from lolgps_torch.data import (
     export_minari,
     load_dataset,
 )
+from lolgps_torch.data.run_folder import RunFolder, portable_urdf, task_json
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import TaskConfig
 from lolgps_torch.types import ConditionSamples
 
-URDF = str(Path(__file__).resolve().parents[1] / "robots" / "kuka_peg.urdf")
+URDF = str(Path(__file__).resolve().parents[2] / "robots" / "kuka_peg.urdf")
 
 
 def parse_args() -> argparse.Namespace:
@@ -64,20 +64,21 @@ def random_samples(M: int, T: int, dX: int, dU: int, g: torch.Generator) -> Cond
 
 def make_run(folder: Path, layout: StateLayout, conditions: int, trajectories: int, T: int) -> int:
     """Write a synthetic run folder; returns the uncompressed size (bytes) of its arrays."""
-    folder.mkdir()
     task = TaskConfig(urdf=URDF)
     task = replace(task, world=replace(task.world, T=T))
     offsets = [(0.01 * i, -0.01 * i) for i in range(conditions)]
+    urdf_text = portable_urdf(URDF)
     config = {
         "method": "lolgps",
         "seed": 0,
-        "task": asdict(task),
+        "task": task_json(task, urdf_text),
         "stream": {},
         "conditions": [list(o) for o in offsets],
-        "stages": [],
+        "stages": [{"name": "stream", "last_condition": conditions - 1}],
     }
-    (folder / "config.json").write_text(json.dumps(config))
-    replay, g, size = ReplayBuffer(folder / "replay.h5"), torch.Generator().manual_seed(0), 0
+    run_folder = RunFolder(folder)
+    run_folder.start(config, urdf_text)
+    replay, g, size = ReplayBuffer(run_folder.replay_path), torch.Generator().manual_seed(0), 0
     for index, offset in enumerate(offsets):
         samples = random_samples(trajectories, T, layout.dX, layout.dU, g)
         replay.append_condition(index, offset, samples, iterations=10)

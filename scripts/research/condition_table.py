@@ -1,7 +1,7 @@
 """Learn single conditions over holes x seeds (x arms) with scripts/train_condition.py and
 print the markdown table of first successful iteration and final noiseless distance.
 
-    python scripts/condition_table.py --urdf robots/kuka_peg.urdf --seeds 0 1 2 3 4 \\
+    python scripts/research/condition_table.py --urdf robots/kuka_peg.urdf --seeds 0 1 2 3 4 \\
         --holes 0 0 0.03 0.03 -0.03 0.03 0.03 -0.03 -0.03 -0.03 --iterations 10 --out runs/table
 
 An iteration succeeds when at least --min-success (default 3) of its 5 samples end with the tip
@@ -11,13 +11,26 @@ within 0.06 m of the target. Each run's metrics.jsonl and summary.json stay unde
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 from lolgps_torch.cli import run
+from lolgps_torch.data.run_folder import RunFolder, read_json
 from lolgps_torch.errors import LolgpsError
+
+TRAIN_CONDITION = Path(__file__).resolve().parents[1] / "train_condition.py"
+
+
+def learn(urdf: str, hole: tuple[float, float], seed: int, iterations: int, out: str) -> RunFolder:
+    """One run of scripts/train_condition.py into ``out``."""
+    cmd = [sys.executable, str(TRAIN_CONDITION), "--urdf", urdf, "--hole", str(hole[0])]
+    cmd += [str(hole[1]), "--seed", str(seed), "--iterations", str(iterations), "--out", out]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise LolgpsError(f"{' '.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1]}")
+    return RunFolder(out)
 
 
 def main() -> None:
@@ -45,35 +58,15 @@ def main() -> None:
         for dx, dy in holes:
             for seed in args.seeds:
                 out = os.path.join(args.out, f"{arm}_{dx:+.3f}_{dy:+.3f}_s{seed}")
-                cmd = [
-                    sys.executable,
-                    "scripts/train_condition.py",
-                    "--urdf",
-                    urdf,
-                    "--hole",
-                    str(dx),
-                    str(dy),
-                    "--seed",
-                    str(seed),
-                    "--iterations",
-                    str(args.iterations),
-                    "--out",
-                    out,
-                ]
-                proc = subprocess.run(cmd, capture_output=True, text=True)
-                if proc.returncode != 0:
-                    raise LolgpsError(
-                        f"{' '.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1]}"
-                    )
-                with open(os.path.join(out, "metrics.jsonl")) as fh:
-                    rates = [json.loads(line)["success_rate"] for line in fh]
+                folder = learn(urdf, (dx, dy), seed, args.iterations, out)
+                rates = [r["success_rate"] for r in folder.read_metrics()]
                 first = next(
                     (i for i, r in enumerate(rates) if r * 5 >= args.min_success - 1e-9), None
                 )
-                with open(os.path.join(out, "summary.json")) as fh:
-                    final = json.load(fh)["noiseless_final_distance"]
+                final = read_json(folder.summary_path)["noiseless_final_distance"]
                 print(
-                    f"| {arm} | ({dx:+.3f}, {dy:+.3f}) | {seed} | {'-' if first is None else first} | {final:.4f} |",
+                    f"| {arm} | ({dx:+.3f}, {dy:+.3f}) | {seed} | "
+                    f"{'-' if first is None else first} | {final:.4f} |",
                     flush=True,
                 )
 

@@ -1,7 +1,8 @@
 """Re-run the S-step on a finished run's replay with other settings, and test the result.
 
-    python scripts/redistill.py --run DIR [--steps N] [--width W] [--batch-size B] [--lr LR]
-                                [--pre-weight W] [--jitter 0.004] [--seed S] [--out DIR2]
+    python scripts/research/redistill.py --run DIR [--steps N] [--width W] [--batch-size B]
+                                         [--lr LR] [--pre-weight W] [--jitter 0.004]
+                                         [--seed S] [--out DIR2]
 
 A fresh global policy is fitted (paper eq. 8) on the D_g of every condition in DIR/replay.h5,
 with the stored targets (and the run's weight on the p_pre term unless ``--pre-weight`` is
@@ -15,23 +16,19 @@ rather than re-running the stream. ``--out`` saves the policy (policy.pt, policy
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import torch
 
 from lolgps_torch.cli import run
-from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.checkpoint import save_policy
+from lolgps_torch.data.run import LoadedRun, load_run
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.evaluation.evaluate import read_run
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill, policy_actor
-from lolgps_torch.task import PegTask, task_config_from_dict
-from lolgps_torch.types import DistillBatch
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -62,25 +59,19 @@ def main() -> None:
         raise LolgpsError("--steps, --width, --layers and --batch-size must be positive")
     if args.pre_weight is not None and args.pre_weight < 0.0:
         raise LolgpsError(f"--pre-weight {args.pre_weight}: must be >= 0")
-    torch.manual_seed(args.seed)
+    return args
 
-    info = read_run(args.run)
-    replay = ReplayBuffer(Path(args.run) / "replay.h5")
-    indices = replay.conditions()
-    if not indices:
-        raise LolgpsError(f"{args.run}/replay.h5 holds no conditions")
-    records = [replay.read_condition(i) for i in indices]
-    batch = replay.load(indices)
-    if batch.M == 0:
-        raise LolgpsError(f"{args.run}/replay.h5 holds no successful samples")
+
+def policy_config(args: argparse.Namespace, loaded: LoadedRun) -> PolicyConfig:
+    """The S-step settings of the flags, with the run's own p_pre weight by default."""
     try:
-        with open(Path(args.run) / "config.json") as fh:
-            # runs made before the weight existed used the paper's equal weights
-            run_weight = float(json.load(fh)["stream"]["policy"].get("pre_weight", 1.0))
-    except (KeyError, TypeError, AttributeError, ValueError) as exc:
-        raise LolgpsError(f"{args.run}/config.json: no stream.policy settings ({exc})") from None
-    config = replace(
-        d,
+        run_weight = float(loaded.info.stream["policy"]["pre_weight"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise LolgpsError(
+            f"{loaded.folder.config_path}: no stream.policy.pre_weight ({exc})"
+        ) from None
+    return replace(
+        PolicyConfig(),
         pre_weight=run_weight if args.pre_weight is None else args.pre_weight,
         hidden_sizes=(args.width,) * args.layers,
         steps=args.steps,
@@ -88,24 +79,18 @@ def main() -> None:
         learning_rate=args.lr,
         seed=args.seed,
     )
-    task = PegTask(task_config_from_dict(info.task), n_worlds=5)
-    policy = GaussianPolicy(task.layout.dX, task.layout.dU, config)
-    start = time.perf_counter()
-    losses = distill(policy, DistillBatch(*batch), config)
-    seconds = time.perf_counter() - start
-    tail = losses[-min(100, len(losses)) :]
-    print(
-        f"fitted {batch.M} rows in {seconds:.1f}s; loss {losses[0]:.1f} -> "
-        f"{sum(tail) / len(tail):.1f} (mean of the last {len(tail)} steps)"
-    )
-    if args.out:
-        policy.save(args.out)
 
-    j = args.jitter
-    around = [(0.0, 0.0), (j, 0.0), (-j, 0.0), (0.0, j), (0.0, -j)]
+
+def test_around(loaded: LoadedRun, policy: GaussianPolicy, jitter: float) -> None:
+    """Print the policy's noiseless results at each training position and around it."""
+    records = loaded.records
+    around = [(0.0, 0.0), (jitter, 0.0), (-jitter, 0.0), (0.0, jitter), (0.0, -jitter)]
     offsets = [(r.offset[0] + dx, r.offset[1] + dy) for r in records for dx, dy in around]
-    result = task.sample(policy_actor(policy), offsets)
-    task.close()
+    task = loaded.make_task()
+    try:
+        result = task.sample(policy_actor(policy), offsets)
+    finally:
+        task.close()
     success = result.success.reshape(len(records), len(around))
     distance = result.final_distance.reshape(len(records), len(around))
     for record, s, dist in zip(records, success, distance, strict=True):
@@ -117,6 +102,29 @@ def main() -> None:
         f"training positions {int(success[:, 0].sum())}/{len(records)}, "
         f"with jittered {int(success.sum())}/{success.numel()}"
     )
+
+
+def main() -> None:
+    args = parse_args()
+    torch.manual_seed(args.seed)
+    loaded = load_run(args.run)
+    config = policy_config(args, loaded)
+    batch = loaded.replay.load()
+    if batch.M == 0:
+        raise LolgpsError(f"{loaded.folder.replay_path} holds no successful samples")
+    dX, dU = batch.x.shape[-1], batch.mean_cur.shape[-1]
+    policy = GaussianPolicy(dX, dU, config)
+    start = time.perf_counter()
+    losses = distill(policy, batch, config)
+    seconds = time.perf_counter() - start
+    tail = losses[-min(100, len(losses)) :]
+    print(
+        f"fitted {batch.M} rows in {seconds:.1f}s; loss {losses[0]:.1f} -> "
+        f"{sum(tail) / len(tail):.1f} (mean of the last {len(tail)} steps)"
+    )
+    if args.out:
+        save_policy(args.out, policy)
+    test_around(loaded, policy, args.jitter)
 
 
 if __name__ == "__main__":

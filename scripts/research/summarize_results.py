@@ -1,6 +1,6 @@
 """Markdown tables for docs/RESULTS.md from finished runs (summary.json, and eval.json if any).
 
-    python scripts/summarize_results.py runs/lolgps-seed0 runs/lolgps-seed1 runs/naive-seed0 ...
+    python scripts/research/summarize_results.py runs/lolgps-seed0 runs/lolgps-seed1 runs/naive-seed0 ...
 
 Prints: the global policy alone at the training positions (per run), and, from eval.json,
 the success rate and mean final distance per stage and test area averaged over the seeds of
@@ -10,26 +10,19 @@ each method, with the forgetting and the average final success.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
 from collections import defaultdict
+from dataclasses import asdict
 from typing import Any
 
 from lolgps_torch.cli import run
 from lolgps_torch.cost.l12 import CostConfig
-from lolgps_torch.errors import LolgpsError
-from lolgps_torch.lolgps.stream import StreamConfig
+from lolgps_torch.data.run_folder import RunFolder, as_stored, flatten
+from lolgps_torch.evaluation.evaluate import read_evaluation
+from lolgps_torch.lolgps import StreamConfig, method_config
 from lolgps_torch.sim.world import WorldConfig
 
-
-def _load(path: str) -> dict[str, Any]:
-    try:
-        with open(path) as fh:
-            data: dict[str, Any] = json.load(fh)
-    except (OSError, ValueError) as exc:
-        raise LolgpsError(f"cannot read {path}: {exc}") from None
-    return data
+PER_RUN = {"seed", "policy.seed"}  # settings every seed changes
 
 
 def _mean_sd(values: list[float]) -> str:
@@ -41,35 +34,26 @@ def _mean_sd(values: list[float]) -> str:
 
 
 def label(folder: str) -> str:
-    """The method, with its alpha setting for LOLGPS and every setting that differs from the
-    defaults (ablations share the method name)."""
-    config = _load(os.path.join(folder, "config.json"))
-    stream, cost, d = config["stream"], config["task"]["cost"], StreamConfig()
-    settings = {  # name: (this run's value, the default); older runs lack the newer keys
-        "pre_fit": (stream.get("pre_fit", d.pre_fit), d.pre_fit),
-        "cstep_anchor": (stream["cstep_anchor"], d.cstep_anchor),
-        "plan_through_mixture": (
-            stream.get("plan_through_mixture", d.plan_through_mixture),
-            d.plan_through_mixture,
-        ),
-        "augment": (stream.get("augment", d.augment), d.augment),
-        "augment_mode": (stream.get("augment_mode", "independent"), d.augment_mode),
-        "corrections": (
-            stream.get("corrections", {}).get("rounds", d.corrections.rounds),
-            d.corrections.rounds,
-        ),
-        "action_weight": (cost.get("action_weight"), CostConfig().action_weight),
-        "distill_steps": (stream["policy"]["steps"], d.policy.steps),
-        "pre_weight": (stream["policy"].get("pre_weight", 1.0), d.policy.pre_weight),
-        "descent_height": (cost.get("descent_height", 0.0), CostConfig().descent_height),
-        "descent_steps": (cost.get("descent_steps", 0), CostConfig().descent_steps),
-        "friction": (config["task"]["world"]["friction"], WorldConfig().friction),
-        "consolidate": (stream.get("consolidate", d.consolidate), d.consolidate),
-        "refits": (stream.get("refits", d.refits), d.refits),
-    }
-    extras = [f"{name} {value}" for name, (value, default) in settings.items() if value != default]
+    """The method, with its alpha setting for LOLGPS and every stream, cost and world setting
+    that differs from the method's defaults (ablations share the method name); settings of
+    earlier versions show as they were saved."""
+    config = RunFolder(folder).read_config()
     method = str(config["method"])
+    sections = {
+        "": (config["stream"], as_stored(asdict(method_config(method, StreamConfig())))),
+        "cost.": (config["task"]["cost"], asdict(CostConfig())),
+        "world.": (config["task"]["world"], asdict(WorldConfig())),
+    }
+    extras = []
+    for prefix, (saved, default) in sections.items():
+        mine, defaults = flatten(saved), flatten(default)
+        extras += [
+            f"{prefix}{key} {value}"
+            for key, value in mine.items()
+            if key not in PER_RUN and value != defaults.get(key)
+        ]
     if method == "lolgps":
+        stream = config["stream"]
         extras.insert(0, f"alpha {stream['alpha']:g} {stream['alpha_schedule']}")
     return f"{method} ({', '.join(extras)})" if extras else method
 
@@ -80,7 +64,7 @@ def training_table(runs: list[str]) -> None:
     )
     print("|---|---|---|---|---|")
     for folder in runs:
-        s = _load(os.path.join(folder, "summary.json"))
+        s = RunFolder(folder).read_summary()
         entries = s["conditions"]
         solved = sum(bool(e["policy_success_end"]) for e in entries)
         cells = ", ".join(
@@ -91,10 +75,10 @@ def training_table(runs: list[str]) -> None:
 
 
 def eval_tables(runs: list[str]) -> None:
-    done = [f for f in runs if os.path.exists(os.path.join(f, "eval.json"))]
+    done = [f for f in runs if RunFolder(f).eval_path.exists()]
     if not done:
         return
-    evals = [_load(os.path.join(f, "eval.json")) for f in done]
+    evals = [read_evaluation(f) for f in done]
     by_method: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for folder, e in zip(done, evals, strict=True):
         by_method[label(folder)].append(e)

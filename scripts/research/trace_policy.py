@@ -1,7 +1,7 @@
 """Trace a run's global policy step by step at its training positions, to see how it misses.
 
-    python scripts/trace_policy.py --run DIR [--checkpoint N] [--steps 0 3 6 10 20 50 99]
-                                   [--area-misses K]
+    python scripts/research/trace_policy.py --run DIR [--checkpoint N]
+                                            [--steps 0 3 6 10 20 50 99] [--area-misses K]
 
 For each condition in DIR/replay.h5 it prints two lines:
 
@@ -24,21 +24,20 @@ nearest training position: one ``rollout`` line each, no D_g fit.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-from pathlib import Path
 
 import torch
 
 from lolgps_torch.cli import run
-from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.checkpoint import load_policy
+from lolgps_torch.data.run import LoadedRun, load_run
+from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.evaluation.evaluate import checkpoint_dir, read_run
+from lolgps_torch.evaluation.evaluate import read_evaluation
 from lolgps_torch.policy import GaussianPolicy, policy_actor
-from lolgps_torch.task import PegTask, TaskConfig, task_config_from_dict
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -54,26 +53,25 @@ def main() -> None:
         metavar="K",
         help="trace test area K's positions the final policy missed (from DIR/eval.json)",
     )
-    args = parser.parse_args()
-    info = read_run(args.run)
-    task_config = task_config_from_dict(info.task)
-    T = task_config.world.T
+    return parser.parse_args()
+
+
+def main() -> None:
+    args = parse_args()
+    loaded = load_run(args.run)
+    T = loaded.info.task.world.T
     bad = [t for t in args.steps if not 0 <= t < T]
     if bad:
         raise LolgpsError(f"--steps must lie in [0, {T}), got {bad}")
     if args.area_misses is not None:
-        trace_area_misses(args.run, task_config, args.area_misses, args.steps)
+        trace_area_misses(loaded, args.area_misses, args.steps)
         return
-    replay = ReplayBuffer(Path(args.run) / "replay.h5")
-    records = [replay.read_condition(i) for i in replay.conditions()]
-    if not records:
-        raise LolgpsError(f"{args.run}/replay.h5 holds no conditions")
-    last = records[-1].condition if args.checkpoint is None else args.checkpoint
-    policy = GaussianPolicy.load(checkpoint_dir(args.run, last))
-    errors, finals = _tip_errors(task_config, policy, [r.offset for r in records], args.steps)
-    steps = torch.tensor(args.steps)
+    last = loaded.records[-1].condition if args.checkpoint is None else args.checkpoint
+    policy = loaded.policy(last)
+    offsets = [r.offset for r in loaded.records]
+    errors, finals = _tip_errors(loaded, policy, offsets, args.steps)
     print(f"policy after condition {last}; columns: steps {args.steps}")
-    for i, record in enumerate(records):
+    for i, record in enumerate(loaded.records):
         print(
             f"condition {record.condition} ({record.offset[0]:+.3f}, {record.offset[1]:+.3f}) "
             f"rollout tip error mm {_cells(errors[i])} final {finals[i]:.3f} m"
@@ -82,31 +80,49 @@ def main() -> None:
         if samples.x.shape[0] == 0:
             print("    D_g fit: no stored successes")
             continue
-        with torch.no_grad():
-            mean = policy(samples.x[:, steps])
-        diff = mean - samples.mean_cur[:, steps]
-        relative = (diff.norm(dim=-1) / samples.mean_cur[:, steps].norm(dim=-1)).mean(0)
-        prec = samples.prec_cur[:, steps]
-        sigmas = (diff.unsqueeze(-2) @ prec @ diff.unsqueeze(-1)).flatten(-3).sqrt().mean(0)
         print(
-            "    D_g fit: |mu_theta - mu_cur| / |mu_cur| "
-            + " ".join(f"{v:.2f}" for v in relative)
-            + "; in p_cur's standard deviations "
-            + " ".join(f"{v:.1f}" for v in sigmas)
+            "    D_g fit: "
+            + _fit_line(policy, samples.x, samples.mean_cur, samples.prec_cur, args.steps)
         )
 
 
+def _fit_line(
+    policy: GaussianPolicy,
+    x: torch.Tensor,
+    mean_cur: torch.Tensor,
+    prec_cur: torch.Tensor,
+    steps: list[int],
+) -> str:
+    """The policy's action error on stored states ``x: [M, T, dX]`` against p_cur's means
+    ``[M, T, dU]`` and precisions ``[M, T, dU, dU]`` at ``steps``, averaged over samples:
+    relative, and in p_cur's standard deviations."""
+    at = torch.tensor(steps)
+    with torch.no_grad():
+        diff = policy(x[:, at]) - mean_cur[:, at]
+    relative = (diff.norm(dim=-1) / mean_cur[:, at].norm(dim=-1)).mean(0)
+    d = diff.unsqueeze(-1)
+    sigmas = (d.mT @ prec_cur[:, at] @ d).flatten(-3).sqrt().mean(0)
+    return (
+        "|mu_theta - mu_cur| / |mu_cur| "
+        + " ".join(f"{v:.2f}" for v in relative)
+        + "; in p_cur's standard deviations "
+        + " ".join(f"{v:.1f}" for v in sigmas)
+    )
+
+
 def _tip_errors(
-    task_config: TaskConfig,
+    loaded: LoadedRun,
     policy: GaussianPolicy,
     offsets: list[tuple[float, float]],
     steps: list[int],
 ) -> tuple[torch.Tensor, list[float]]:
     """The policy's noiseless rollouts at ``offsets``: the tip error ``p_tip - p*_tip`` (mm)
     at ``steps``, ``[len(offsets), len(steps), 3]``, and the final distances (m)."""
-    task = PegTask(task_config, n_worlds=5)
-    rollouts = task.sample(policy_actor(policy), offsets)
-    task.close()
+    task = loaded.make_task()
+    try:
+        rollouts = task.sample(policy_actor(policy), offsets)
+    finally:
+        task.close()
     tip = task.layout.points.start
     errors = rollouts.x[:, torch.tensor(steps), tip : tip + 3] * 1000.0
     return errors, rollouts.final_distance.tolist()
@@ -116,23 +132,24 @@ def _cells(error_mm: torch.Tensor) -> str:
     return " ".join(f"({e[0]:+.0f},{e[1]:+.0f},{e[2]:+.0f})" for e in error_mm.tolist())
 
 
-def trace_area_misses(run_dir: str, task_config: TaskConfig, area: int, steps: list[int]) -> None:
+def trace_area_misses(loaded: LoadedRun, area: int, steps: list[int]) -> None:
     """Rollout lines at the positions of test area ``area`` that the last stage missed."""
+    folder: RunFolder = loaded.folder
     try:
-        evaluation = json.loads((Path(run_dir) / "eval.json").read_text())
+        evaluation = read_evaluation(folder.path)
         stage = evaluation["stages"][-1]
         group = evaluation["groups"][area]
         finals = stage["per_position"]["final_distance"][area]
         threshold = float(evaluation["success_threshold"])
         training = evaluation["training"]["conditions"]
-    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
-        raise LolgpsError(f"{run_dir}/eval.json: no test area {area} to trace ({exc})") from None
+    except (LolgpsError, ValueError, KeyError, IndexError, TypeError) as exc:
+        raise LolgpsError(f"{folder.eval_path}: no test area {area} to trace ({exc})") from None
     misses = [tuple(p) for p, d in zip(group["positions"], finals, strict=True) if d >= threshold]
     print(f"{stage['name']} policy, {group['label']}: {len(misses)}/{len(finals)} missed")
     if not misses:
         return
-    policy = GaussianPolicy.load(Path(run_dir) / stage["checkpoint"])
-    errors, final = _tip_errors(task_config, policy, misses, steps)
+    policy = load_policy(folder.path / stage["checkpoint"])
+    errors, final = _tip_errors(loaded, policy, misses, steps)
     print(f"columns: steps {steps}")
     for i, (dx, dy) in enumerate(misses):
         nearest = min(math.dist((dx, dy), t) for t in training) * 1000.0

@@ -1,0 +1,181 @@
+"""The rollouts of an evaluation, spread over processes.
+
+Rollouts are cut into fixed batches (:class:`Job`) and shared between this process and spawned
+workers, each claiming the next unclaimed job. Each batch always holds the same positions and
+a rollout does not depend on what its world ran before, so the results do not depend on the
+number of workers. Only plain data crosses processes: this process builds the
+:class:`PegTask` and scores every rollout; a worker (:mod:`lolgps_torch.evaluation.worker`)
+receives the task's arm, world settings, placement and the policies' weights, builds its own
+worlds (a PyBullet client cannot be pickled) and returns states, actions and final distances.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import multiprocessing.queues
+import queue
+import sys
+from collections.abc import Iterator, Sequence
+from multiprocessing.process import BaseProcess
+from typing import NamedTuple
+
+import torch
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.evaluation.worker import (
+    Failure,
+    Job,
+    PolicyRoller,
+    PolicyState,
+    Rollouts,
+    RolloutSetup,
+    next_job,
+    run_worker,
+)
+from lolgps_torch.task import PegTask, TaskConfig
+
+
+class JobResult(NamedTuple):
+    """Per position of a :class:`Job`: final tip distance (m), total cost, success."""
+
+    final_distance: list[float]
+    total_cost: list[float]
+    success: list[bool]
+
+
+def _score(task: PegTask, job: Job, rollouts: Rollouts) -> JobResult:
+    """Per position of ``job``: final tip distance, total cost ``sum_t l(x_t, u_t)`` and
+    success, by :meth:`PegTask.score`."""
+    x, u, final = (torch.from_numpy(a) for a in rollouts)
+    with torch.no_grad():
+        scored = task.score(x, u, final, job.positions)
+    return JobResult(
+        scored.final_distance.tolist(), scored.cost.sum(dim=1).tolist(), scored.success.tolist()
+    )
+
+
+def _unpack(item: tuple[int, Rollouts | Failure]) -> tuple[int, Rollouts]:
+    """A worker's ``(job index, rollouts)``; its failure raised here (a user error as one
+    :class:`LolgpsError` line, a bug as a :class:`RuntimeError` with its traceback)."""
+    index, result = item
+    if isinstance(result, Failure):
+        if result.user_error:
+            raise LolgpsError(result.message)
+        raise RuntimeError(f"an evaluation worker failed:\n{result.message}")
+    return index, result
+
+
+def _ready(
+    results: multiprocessing.queues.Queue[tuple[int, Rollouts | Failure]],
+) -> Iterator[tuple[int, Rollouts]]:
+    """The workers' results already queued, without waiting for more."""
+    while True:
+        try:
+            item = results.get_nowait()
+        except queue.Empty:
+            return
+        yield _unpack(item)
+
+
+def _collect(
+    results: multiprocessing.queues.Queue[tuple[int, Rollouts | Failure]],
+    missing: set[int],
+    processes: Sequence[BaseProcess],
+) -> Iterator[tuple[int, Rollouts]]:
+    """The workers' results for the job indices ``missing``, as they arrive; raises
+    :class:`LolgpsError` if every worker has died with some still missing."""
+    while missing:
+        try:
+            item = results.get(timeout=0.5)
+        except queue.Empty:
+            if not any(p.is_alive() for p in processes) and results.empty():
+                codes = [p.exitcode for p in processes]
+                raise LolgpsError(f"evaluation workers died (exit codes {codes})") from None
+            continue
+        index, rollouts = _unpack(item)
+        missing.discard(index)
+        yield index, rollouts
+
+
+@contextlib.contextmanager
+def _main_script_hidden() -> Iterator[None]:
+    """Hide the ``__main__`` module's file and spec while workers are spawned, so they do not
+    re-run the main script. multiprocessing re-runs it in each spawned process, for pickled
+    references into it; the workers need none (their target and data come from this package),
+    and a script that imports this module would cost each worker pytorch_kinematics and
+    yourdfpy's start-up, about a second."""
+    main = sys.modules["__main__"]
+    spec, path = main.__spec__, main.__dict__.pop("__file__", None)
+    main.__spec__ = None
+    try:
+        yield
+    finally:
+        main.__spec__ = spec
+        if path is not None:
+            main.__file__ = path
+
+
+def _setup(peg: PegTask, n_worlds: int, policies: Sequence[PolicyState]) -> RolloutSetup:
+    """What a worker needs to run ``policies`` in worlds identical to ``peg``'s."""
+    geometry = peg.geometry
+    world = peg.config.world
+    return RolloutSetup(
+        peg.arm, world, geometry.nominal_mouth, geometry.q0, n_worlds, tuple(policies)
+    )
+
+
+def run_jobs(
+    task: TaskConfig,
+    policies: Sequence[PolicyState],
+    jobs: Sequence[Job],
+    workers: int,
+    n_worlds: int,
+) -> list[JobResult]:
+    """Results of ``jobs``, in order, from ``workers`` processes: this one and ``workers - 1``
+    spawned ones, all on one torch thread, each claiming the next unclaimed job.
+
+    This process starts the workers, builds ``task`` with ``n_worlds`` worlds, sends the
+    workers its arm, world settings and placement and the ``policies`` the jobs name
+    (:class:`RolloutSetup`), then rolls out jobs itself at once. The workers only
+    build worlds and run policies (start-up: 2-3 CPU-seconds, mostly importing torch; the
+    task's inverse kinematics and cost are not theirs) and send back states, actions and final
+    distances. This process scores every rollout with the task's cost as :meth:`PegTask.sample`
+    does (the workers' as they arrive, between its own jobs), so the results do not depend on
+    ``workers``."""
+    if workers < 1:
+        raise LolgpsError(f"need at least one worker, got {workers}")
+    context = multiprocessing.get_context("spawn")
+    counter = context.Value("q", 0)
+    setups: multiprocessing.queues.Queue[RolloutSetup] = context.Queue()
+    results: multiprocessing.queues.Queue[tuple[int, Rollouts | Failure]] = context.Queue()
+    processes = [
+        context.Process(target=run_worker, args=(setups, list(jobs), counter, results))
+        for _ in range(min(workers, len(jobs)) - 1)
+    ]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    peg = None
+    try:
+        with _main_script_hidden():
+            for process in processes:
+                process.start()  # the workers import while this process builds the task
+        peg = PegTask(task, n_worlds=n_worlds)
+        roller = PolicyRoller(peg.sampler, peg.layout, policies)
+        for _ in processes:
+            setups.put(_setup(peg, n_worlds, policies))
+        found: dict[int, JobResult] = {}
+        while (index := next_job(counter, len(jobs))) is not None:
+            found[index] = _score(peg, jobs[index], roller(jobs[index]))
+            for i, rollouts in _ready(results):
+                found[i] = _score(peg, jobs[i], rollouts)
+        for i, rollouts in _collect(results, set(range(len(jobs))) - set(found), processes):
+            found[i] = _score(peg, jobs[i], rollouts)
+        return [found[i] for i in range(len(jobs))]
+    finally:
+        for process in processes:
+            process.terminate()  # those still starting up when every job was taken
+            process.join()
+        if peg is not None:
+            peg.close()
+        torch.set_num_threads(threads)

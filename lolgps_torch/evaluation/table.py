@@ -1,0 +1,40 @@
+"""The evaluation as a plain-text table (what ``scripts/evaluate.py`` prints)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def format_table(evaluation: dict[str, Any]) -> str:
+    """A plain-text table: per stage and group, distance, cost and success with 95% CIs."""
+
+    def interval(stat: dict[str, float | None], fmt: str) -> str:
+        if stat["low"] is None or stat["high"] is None:
+            return f"{stat['mean']:{fmt}}"
+        return f"{stat['mean']:{fmt}} [{stat['low']:{fmt}}, {stat['high']:{fmt}}]"
+
+    lines = [
+        f"{'stage':<8} {'group':<18} {'centre (m)':>10}  {'final distance (m)':<26} "
+        f"{'total cost':<28} success"
+    ]
+    for stage in evaluation["stages"]:
+        for group, stats in zip(evaluation["groups"], stage["groups"], strict=True):
+            lines.append(
+                f"{stage['name']:<8} {group['label']:<18} {group['centre_distance']:>10.3f}  "
+                f"{interval(stats['final_distance'], '.4f'):<26} "
+                f"{interval(stats['total_cost'], '.1f'):<28} "
+                f"{interval(stats['success_rate'], '.2f')}"
+            )
+    metrics = evaluation["metrics"]
+    lines.append(f"average final success: {metrics['average_final_success']:.3f}")
+    if metrics["forgetting"] is not None:
+        for name, forgot in metrics["forgetting"].items():
+            cells = ["  -  " if v is None else f"{v:+.3g}" for v in forgot["per_area"]]
+            lines.append(f"forgetting of {name} per area (positive: worse): {' '.join(cells)}")
+    if metrics["forward_transfer"] is not None:
+        cells = [
+            f"c{row['condition']}: {row['iterations']}/{row['scratch_iterations']}"
+            for row in metrics["forward_transfer"]
+        ]
+        lines.append("iterations to first success (run/scratch): " + ", ".join(cells))
+    return "\n".join(lines)

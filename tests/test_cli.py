@@ -1,0 +1,179 @@
+"""Command-line plumbing: flags derived from config dataclasses, and run_stream's checks, all
+made before anything is written."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import runpy
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import pytest
+
+from lolgps_torch.cli import ConfigFlags, read_offsets
+from lolgps_torch.data.run_folder import RunFolder
+from lolgps_torch.errors import LolgpsError
+
+RUN_STREAM = Path(__file__).resolve().parents[1] / "scripts" / "run_stream.py"
+
+
+@dataclass(frozen=True)
+class Inner:
+    """Nested settings.
+
+    :param steps: Adam steps, 100% of them.
+    """
+
+    steps: int = 10
+
+
+@dataclass(frozen=True)
+class Outer:
+    """Settings.
+
+    :param rate: a step size
+        over two lines.
+    :param mode: how to go. :param replay: use the replay.
+    :param width: optional width.
+    :param pose: a pose (rad).
+    :param inner: nested.
+    """
+
+    rate: float = 0.5
+    mode: Literal["fast", "slow"] = "fast"
+    replay: bool = True
+    width: int | None = None
+    pose: tuple[float, ...] | None = None
+    inner: Inner = field(default_factory=Inner)
+
+
+FLAGS = ConfigFlags(
+    Outer(), renames={"steps": ("inner.steps",), "no-replay": ("replay",)}, skip=("width",)
+)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser()
+    FLAGS.add_to(parser)
+    return parser
+
+
+def test_flags_follow_the_dataclass_fields() -> None:
+    parser = _parser()
+    actions = {a.dest: a for a in parser._actions}
+    assert set(actions) == {"help", "rate", "mode", "pose", "steps", "no_replay"}
+    assert actions["mode"].choices == ["fast", "slow"]
+    assert actions["rate"].type is float and actions["rate"].default == 0.5
+    assert actions["steps"].type is int and actions["steps"].default == 10
+    assert actions["rate"].help == "a step size over two lines (default %(default)s)"
+    assert actions["steps"].help == "Adam steps, 100%% of them (default %(default)s)"
+    assert "(default" not in str(actions["no_replay"].help)
+    assert Outer() == FLAGS.build(parser.parse_args([]))
+    built = FLAGS.build(
+        parser.parse_args(
+            ["--rate", "2", "--mode", "slow", "--steps", "3", "--no-replay", "--pose", "1", "2"]
+        )
+    )
+    assert built == Outer(rate=2.0, mode="slow", replay=False, pose=(1.0, 2.0), inner=Inner(3))
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--mode", "medium"])
+
+
+def test_a_field_without_a_documented_param_is_a_programming_error() -> None:
+    @dataclass(frozen=True)
+    class Undocumented:
+        """No params."""
+
+        rate: float = 1.0
+
+    with pytest.raises(TypeError, match="documents no :param rate:"):
+        ConfigFlags(Undocumented()).add_to(argparse.ArgumentParser())
+
+
+def test_offsets_must_be_finite_pairs(tmp_path: Path) -> None:
+    path = tmp_path / "offsets.json"
+    path.write_text("[[0.0, 0.01], [0.02, -0.01]]")
+    assert read_offsets(str(path), "--conditions") == [(0.0, 0.01), (0.02, -0.01)]
+    for text, message in [
+        ("[[NaN, 0]]", "finite numbers, got \\[nan, 0.0\\]"),
+        ("[[1, 2, 3]]", "expected a JSON list of \\[dx, dy\\]"),
+        ("[]", "is empty"),
+    ]:
+        path.write_text(text)
+        with pytest.raises(LolgpsError, match=message):
+            read_offsets(str(path), "--conditions")
+
+
+def _run_stream(
+    argv: list[str], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> list[str]:
+    """run_stream.py's stderr lines, the script having exited with code 2."""
+    monkeypatch.setattr(sys, "argv", ["run_stream.py", *argv])
+    with pytest.raises(SystemExit) as exit_info:
+        runpy.run_path(str(RUN_STREAM), run_name="__main__")
+    assert exit_info.value.code == 2
+    return capsys.readouterr().err.strip().splitlines()
+
+
+@pytest.mark.parametrize(
+    ("extra", "conditions", "message"),
+    [
+        (["--device", "banana"], "[[0, 0]]", "error: --device banana: "),
+        ([], "[[NaN, 0]]", "error: --conditions "),
+        (["--max-iterations", "0"], "[[0, 0]]", "error: max_iterations 0: out of range"),
+        ([], "[[5.0, 0.0]]", "error: hole offset (+5.000, +0.000) m is out of the arm's reach"),
+        (["--resume"], "[[0, 0]]", "error: --resume: "),
+    ],
+)
+def test_run_stream_checks_everything_before_writing(
+    extra: list[str],
+    conditions: str,
+    message: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    (tmp_path / "conditions.json").write_text(conditions)
+    argv = ["--conditions", str(tmp_path / "conditions.json"), "--out", str(tmp_path / "run")]
+    err = _run_stream([*argv, *extra], monkeypatch, capsys)
+    assert len(err) == 1 and err[0].startswith(message), err
+    assert not (tmp_path / "run").exists()
+
+
+def test_run_stream_refuses_an_unwritable_out(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    err = _run_stream(["--out", "/proc/nope"], monkeypatch, capsys)
+    assert len(err) == 1 and err[0].startswith("error: cannot write to /proc/nope")
+    assert not Path("/proc/nope").exists()
+
+
+def test_resume_names_the_fields_that_differ(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "conditions.json").write_text("[[0, 0]]")
+    argv = ["--conditions", str(tmp_path / "conditions.json"), "--out", str(tmp_path / "run")]
+    script: dict[str, Any] = runpy.run_path(str(RUN_STREAM))
+    plan = script["plan_run"](script["parse_args"](argv))
+    RunFolder(tmp_path / "run").start(plan.config, plan.urdf_text)
+    before = sorted(p.name for p in (tmp_path / "run").iterdir())
+    err = _run_stream([*argv, "--resume", "--max-iterations", "3"], monkeypatch, capsys)
+    assert len(err) == 1
+    assert err[0] == (
+        f"error: {tmp_path / 'run'} holds a run with another configuration: "
+        "stream.max_iterations: 25 (saved) vs 3 (now)"
+    )
+    assert (
+        sorted(p.name for p in (tmp_path / "run").iterdir())
+        == before
+        == [
+            "arm.urdf",
+            "config.json",
+        ]
+    )
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["task"]["urdf"] == "robots/kuka_peg.urdf"
+    assert len(saved["task"]["urdf_sha256"]) == 64
