@@ -82,7 +82,7 @@ def make_run(folder: Path, layout: StateLayout, conditions: int, trajectories: i
     for index, offset in enumerate(offsets):
         samples = random_samples(trajectories, T, layout.dX, layout.dU, g)
         replay.append_condition(index, offset, samples, iterations=10)
-        size += sum(t.numel() * t.element_size() for t in samples)
+        size += sum(t.numel() * t.element_size() for t in samples if t is not None)
     return size
 
 
