@@ -73,15 +73,15 @@ def label(task: PegTask, kept: list[Trajectories], labels: Labels) -> ConditionS
     """D_g: the successful rollouts ``kept`` with the labels' action means and precisions at
     their states (one coherent feedback law per condition; M may be 0)."""
     if kept:
-        x, u, cost, final = (
+        x, u, cost, final, last = (
             torch.cat([getattr(k, name) for k in kept])
-            for name in ("x", "u", "cost", "final_distance")
+            for name in ("x", "u", "cost", "final_distance", "final_state")
         )
     else:
         x = torch.zeros(0, task.T, task.layout.dX, dtype=torch.float64, device=task.device)
         u = torch.zeros(0, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
-        cost, final = x.new_zeros(0, task.T), x.new_zeros(0)
-    return ConditionSamples(x, u, cost, final, *targets(x, labels))
+        cost, final, last = x.new_zeros(0, task.T), x.new_zeros(0), x.new_zeros(0, task.layout.dX)
+    return ConditionSamples(x, u, cost, final, *targets(x, labels), final_state=last)
 
 
 def consistent_states(task: PegTask, x: Tensor, offset: tuple[float, float]) -> Tensor:

@@ -12,6 +12,7 @@ from the predicted against the actual improvement of the expected cost.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from lolgps_torch.controllers import hold_controller, smoothed_noise
 from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
+from lolgps_torch.errors import check_fields
 from lolgps_torch.sim.rollout import Actor, linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.trajopt import (
@@ -55,6 +57,17 @@ class LocalConfig:
     noise_smoothing: float = 2.0
     cstep: CStepConfig = field(default_factory=CStepConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            {
+                "samples": self.samples >= 2,
+                "init_variance": 0.0 < self.init_variance < math.inf,
+                "init_omega": 0.0 <= self.init_omega < math.inf,
+                "noise_smoothing": 0.0 <= self.noise_smoothing < math.inf,
+            },
+        )
 
 
 class Fit(NamedTuple):

@@ -32,7 +32,7 @@ from lolgps_torch.data.checkpoint import load_policy, save_policy
 from lolgps_torch.data.records import ConditionSummary, DistillRecord, IterationRecord
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.dynamics import prior_from_config
-from lolgps_torch.errors import LolgpsError, NumericalError
+from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label, label_source
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
@@ -93,19 +93,19 @@ class StreamConfig:
         for name, kind in options:
             if getattr(self, name) not in get_args(kind):
                 raise LolgpsError(f"{name} {getattr(self, name)!r}: one of {get_args(kind)}")
-        checks = {
-            "alpha": 0.0 <= self.alpha <= 1.0,
-            "alpha_step": 0.0 <= self.alpha_step <= 1.0,
-            "success_phases": self.success_phases >= 1,
-            "augment": self.augment >= 0,
-            "augment_scale": 0.0 <= self.augment_scale < float("inf"),
-            "max_iterations": self.max_iterations >= 1,
-            "transfer_phases": self.transfer_phases >= 1,
-            "seed": self.seed >= 0,
-        }
-        for name, ok in checks.items():
-            if not ok:
-                raise LolgpsError(f"{name} {getattr(self, name)}: out of range")
+        check_fields(
+            self,
+            {
+                "alpha": 0.0 <= self.alpha <= 1.0,
+                "alpha_step": 0.0 <= self.alpha_step <= 1.0,
+                "success_phases": self.success_phases >= 1,
+                "augment": self.augment >= 0,
+                "augment_scale": 0.0 <= self.augment_scale < float("inf"),
+                "max_iterations": self.max_iterations >= 1,
+                "transfer_phases": self.transfer_phases >= 1,
+                "seed": self.seed >= 0,
+            },
+        )
 
     def next_alpha(self, alpha: float) -> float:
         """The weight of p_pre at the next iteration."""
@@ -113,12 +113,11 @@ class StreamConfig:
 
 
 class Start(NamedTuple):
-    """How local learning starts at a new condition: the first iteration's samples, drawn
-    by ``p_act`` (the hold controller, or p_pre fitted around the global policy's own
-    rollouts), whether the policy already succeeds there, and the rollouts spent choosing."""
+    """How local learning starts at a new condition (p_cur is set by
+    :meth:`StreamLearner.start`): the first iteration's samples when they were drawn already,
+    where p_cur came from, and the rollouts spent choosing."""
 
-    samples: Trajectories
-    p_act: LinearGaussian
+    samples: Trajectories | None
     source: Literal["hold", "policy", "known"]
     extra_rollouts: int
 
@@ -222,22 +221,24 @@ class StreamLearner:
         own noise, around which p_pre is fitted. Where the noiseless rollout succeeds, the
         policy already knows the condition: p_cur starts at p_pre, the policy's rollouts are
         the first iteration's samples, and D_g needs only ``transfer_phases`` iterations with
-        successes. Elsewhere the hold controller is sampled too, and local learning starts
-        from whichever of the two had the lower mean cost, with its samples. None without a
-        trained policy (the first condition, and naive learning)."""
+        successes. Elsewhere the hold controller is sampled too. If it had the lower mean
+        cost, local learning starts from it with its samples; if the policy did, p_cur starts
+        at p_pre's feedback law with the hold controller's exploration noise (the policy's own
+        is too narrow to fit dynamics and take a C-step from) and samples itself. None
+        without a trained policy (the first condition, and naive learning)."""
         if linearize is None:
             return None
-        offset = learner.offset
-        known = policy_distances(self.task, self.policy, [offset])[0] < self.threshold
+        known = policy_distances(self.task, self.policy, [learner.offset])[0] < self.threshold
         probe = learner.sample_actor(lambda noise: policy_actor(self.policy, noise))
-        p_start = linearize(probe.x)
-        n = probe.N
-        if not known:
-            hold = learner.sample(learner.p_cur)
-            if float(hold.cost.sum(1).mean()) <= float(probe.cost.sum(1).mean()):
-                return Start(hold, learner.p_cur, "hold", 1 + n)
-        learner.p_cur = p_start
-        return Start(probe, p_start, "known" if known else "policy", 1 + (0 if known else n))
+        p_pre = linearize(probe.x)
+        if known:
+            learner.p_cur = p_pre
+            return Start(probe, "known", 1)
+        hold = learner.sample(learner.p_cur)
+        if float(hold.cost.sum(1).mean()) <= float(probe.cost.sum(1).mean()):
+            return Start(hold, "hold", 1 + probe.N)
+        learner.p_cur = p_pre._replace(cov=learner.p_cur.cov)
+        return Start(None, "policy", 1 + probe.N + hold.N)
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own

@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.errors import LolgpsError, check_fields
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,21 @@ class PolicyConfig:
     seed: int = 0
     pre_weight: float = 0.1
     num_threads: int | None = 1
+
+    def __post_init__(self) -> None:
+        check_fields(
+            self,
+            {
+                "hidden_sizes": len(self.hidden_sizes) >= 1 and min(self.hidden_sizes) >= 1,
+                "learning_rate": 0.0 < self.learning_rate < math.inf,
+                "batch_size": self.batch_size >= 1,
+                "steps": self.steps >= 1,
+                "std_floor": 0.0 < self.std_floor < math.inf,
+                "seed": self.seed >= 0,
+                "pre_weight": 0.0 <= self.pre_weight < math.inf,
+                "num_threads": self.num_threads is None or self.num_threads >= 1,
+            },
+        )
 
 
 def _mlp(
