@@ -118,7 +118,7 @@ class Start(NamedTuple):
     where p_cur came from, and the rollouts spent choosing."""
 
     samples: Trajectories | None
-    source: Literal["hold", "policy", "known"]
+    source: Literal["hold", "known"]
     extra_rollouts: int
 
 
@@ -215,30 +215,22 @@ class StreamLearner:
         return entry
 
     def start(self, learner: LocalLearner, linearize: Linearizer | None) -> Start | None:
-        """Forward transfer: where to start local learning at a new condition.
+        """Forward transfer: where local learning starts at a new condition.
 
-        The global policy is tried there first: one noiseless rollout and N rollouts with its
-        own noise, around which p_pre is fitted. Where the noiseless rollout succeeds, the
-        policy already knows the condition: p_cur starts at p_pre, the policy's rollouts are
-        the first iteration's samples, and D_g needs only ``transfer_phases`` iterations with
-        successes. Elsewhere the hold controller is sampled too. If it had the lower mean
-        cost, local learning starts from it with its samples; if the policy did, p_cur starts
-        at p_pre's feedback law with the hold controller's exploration noise (the policy's own
-        is too narrow to fit dynamics and take a C-step from) and samples itself. None
-        without a trained policy (the first condition, and naive learning)."""
+        The global policy is tried there first with one noiseless rollout. Where it succeeds,
+        the policy already knows the condition: N rollouts with its own noise are the first
+        iteration's samples, p_cur starts at p_pre fitted around them, and D_g needs only
+        ``transfer_phases`` iterations with successes. Elsewhere local learning starts from
+        the hold controller as without transfer: starting from p_pre where the policy misses
+        learnt more slowly than the hold controller (docs/RESULTS.md). None without a trained
+        policy (the first condition, and naive learning)."""
         if linearize is None:
             return None
-        known = policy_distances(self.task, self.policy, [learner.offset])[0] < self.threshold
+        if policy_distances(self.task, self.policy, [learner.offset])[0] >= self.threshold:
+            return Start(None, "hold", 1)
         probe = learner.sample_actor(lambda noise: policy_actor(self.policy, noise))
-        p_pre = linearize(probe.x)
-        if known:
-            learner.p_cur = p_pre
-            return Start(probe, "known", 1)
-        hold = learner.sample(learner.p_cur)
-        if float(hold.cost.sum(1).mean()) <= float(probe.cost.sum(1).mean()):
-            return Start(hold, "hold", 1 + probe.N)
-        learner.p_cur = p_pre._replace(cov=learner.p_cur.cov)
-        return Start(None, "policy", 1 + probe.N + hold.N)
+        learner.p_cur = linearize(probe.x)
+        return Start(probe, "known", 1)
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own
