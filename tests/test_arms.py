@@ -14,6 +14,7 @@ import torch
 
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 
 DATA = pybullet_data.getDataPath()
@@ -66,6 +67,23 @@ def test_missing_axis_is_x_in_kinematics_and_simulator(tmp_path: Path) -> None:
     world.close()
     got = kin.points(torch.tensor(qs))
     assert torch.allclose(got, torch.tensor(np.stack(expected)), atol=1e-6, rtol=0)
+
+
+def test_link_without_inertial_is_massless_in_the_simulator(tmp_path: Path) -> None:
+    """URDF reads a missing ``<inertial>`` as zero mass; PyBullet alone would put 1 kg there."""
+    text = Path("robots/kuka_peg.urdf").read_text()
+    start = text.index('<link name="iiwa_link_ee">')
+    inertial = text[start : text.index("</inertial>", start) + len("</inertial>")]
+    inertial = inertial[inertial.index("<inertial>") :]
+    arm = load_arm(_write(tmp_path, "no_inertial.urdf", text.replace(inertial, "")))
+    world = PegWorld(arm, WorldConfig(), (0.6, 0.0, 0.2))
+    links = {
+        pb.getJointInfo(world.body, i, physicsClientId=world.client)[12].decode(): i
+        for i in range(pb.getNumJoints(world.body, physicsClientId=world.client))
+    }
+    mass = pb.getDynamicsInfo(world.body, links["iiwa_link_ee"], physicsClientId=world.client)[0]
+    world.close()
+    assert mass == 0.0
 
 
 def test_panda_description() -> None:

@@ -38,6 +38,7 @@ CARRIED_PEG_TIP = "peg_tip"
 ATTACHED_PEG = "lolgps_peg"
 ATTACHED_PEG_TIP = "lolgps_peg_tip"
 _ACTUATED = ("revolute", "continuous")
+_INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 # rpy that turns the point frame's +z onto each supported peg axis of the end-effector link.
 _AXIS_RPY = {
     "x": (0.0, math.pi / 2, 0.0),
@@ -237,8 +238,9 @@ def _cylinder_radius(robot: yourdfpy.URDF, link: str, path: str) -> float:
 def _portable_text(tree: ET.Element, base_dir: str) -> str:
     """The URDF as text both PyBullet and pytorch-kinematics accept from any folder, and read
     alike: mesh paths resolved to absolute ones, transmission/gazebo elements (unused here)
-    dropped, and the URDF default axis (1, 0, 0) written out on moving joints that omit it,
-    since pytorch-kinematics would take (0, 0, 1) instead."""
+    dropped, and URDF defaults written out where the two readers differ: axis (1, 0, 0) on
+    moving joints that omit it (pytorch-kinematics would take (0, 0, 1)), and zero mass and
+    inertia on links without ``<inertial>`` (PyBullet would give them 1 kg and 1 kg m^2)."""
     for child in list(tree):
         if child.tag in ("transmission", "gazebo"):
             tree.remove(child)
@@ -249,6 +251,11 @@ def _portable_text(tree: ET.Element, base_dir: str) -> str:
     for joint in tree.findall("joint"):
         if joint.get("type") != "fixed" and joint.find("axis") is None:
             ET.SubElement(joint, "axis", xyz="1 0 0")
+    for link in tree.findall("link"):
+        if link.find("inertial") is None:
+            inertial = ET.SubElement(link, "inertial")
+            ET.SubElement(inertial, "mass", value="0")
+            ET.SubElement(inertial, "inertia", {key: "0" for key in _INERTIA_KEYS})
     return ET.tostring(tree, encoding="unicode")
 
 

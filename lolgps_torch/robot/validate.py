@@ -4,6 +4,7 @@ cannot use.
 
 What is checked, each failure a :class:`LolgpsError` naming the file and the element:
 
+* numbers: finite, and those of geometry and inertia within +-1e6;
 * the tree: unique link and joint names, each joint's parent and child defined, one root
   link, every link reachable from it (no cycles);
 * joints: a known type; at most one of each part (``<origin>``, ``<axis>``, ``<limit>``...);
@@ -42,6 +43,10 @@ _JOINT_PARTS = {
     "safety_controller": (("k_velocity",), ("k_position", "soft_lower_limit", "soft_upper_limit")),
     "mimic": ((), ("multiplier", "offset")),
 }
+# Geometry and inertia numbers beyond this (m, rad, kg, kg m^2) overflow in the kinematics'
+# float32 parse or its squares; limits, damping and the like are left unbounded.
+_LARGEST = 1e6
+_BOUNDED = ("origin", "axis", "mass", "inertia", "box", "cylinder", "capsule", "sphere", "mesh")
 _INERTIA = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 # each primitive shape's size attributes and how many numbers each holds
 _SHAPES = {
@@ -171,8 +176,9 @@ def _check_joint(joint: ET.Element, where: str) -> None:
         raise LolgpsError(f"{where}: unknown joint type {kind!r}")
     _check_origin(_optional_child(joint, "origin", where), where)
     axis = _optional_child(joint, "axis", where)
-    if axis is not None and not any(_required_numbers(axis, "xyz", where, 3)) and kind != "fixed":
-        raise LolgpsError(f"{where}: <axis> xyz is the zero vector")
+    xyz = _required_numbers(axis, "xyz", where, 3) if axis is not None else (1.0, 0.0, 0.0)
+    if kind != "fixed" and math.hypot(*xyz) < 1e-6:
+        raise LolgpsError(f"{where}: <axis> xyz is (nearly) the zero vector")
     _check_limit(joint, kind, where)
     for tag, (required, optional) in _JOINT_PARTS.items():
         part = _optional_child(joint, tag, where)
@@ -324,4 +330,6 @@ def _numbers(element: ET.Element, attr: str, where: str, count: int) -> tuple[fl
         )
     if not all(math.isfinite(v) for v in values):
         raise LolgpsError(f"{where}: <{element.tag}> {attr}={text!r} is not finite")
+    if element.tag in _BOUNDED and max(abs(v) for v in values) > _LARGEST:
+        raise LolgpsError(f"{where}: <{element.tag}> {attr}={text!r} is beyond +-{_LARGEST:g}")
     return values
