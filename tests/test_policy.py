@@ -16,6 +16,7 @@ from lolgps_torch.policy import (
     linearize_policy,
     optimal_variance,
 )
+from lolgps_torch.policy.sstep import Adam, FlatMLP, cosine_rate, row_quadratics
 from lolgps_torch.types import DistillBatch
 
 F64 = torch.float64
@@ -189,6 +190,85 @@ def test_distill_rejects_an_empty_batch() -> None:
     batch, _ = nonlinear_batch(M=10, seed=9)
     with pytest.raises(LolgpsError, match="empty"):
         distill(GaussianPolicy(3, 2), DistillBatch(*(field[:0] for field in batch)))
+
+
+def test_row_quadratics_complete_the_square() -> None:
+    batch = random_batch(M=50, dX=4, dU=3, seed=12)
+    g = torch.Generator().manual_seed(13)
+    policy = GaussianPolicy(4, 3)
+    policy.set_whitening(batch.x)
+    policy.set_variance(torch.rand(3, dtype=F64, generator=g) + 0.2)
+    rows = row_quadratics(policy, batch, pre_weight=0.3)
+    mean = torch.randn(50, 3, dtype=F64, generator=g)
+    diff = (mean - rows.mean).unsqueeze(-1)
+    per_row = rows.constant + 0.5 * (diff.mT @ rows.prec @ diff).flatten()
+    expected = reference_loss(mean, policy.covariance(), batch, pre_weight=0.3)
+    assert torch.allclose(per_row.mean(), expected, rtol=1e-12)
+    assert torch.equal(rows.x, (batch.x - policy.x_mean) / policy.x_std)
+
+
+def test_flat_mlp_backward_matches_autograd() -> None:
+    policy = GaussianPolicy(5, 3, PolicyConfig(hidden_sizes=(8, 6)))
+    g = torch.Generator().manual_seed(14)
+    x = torch.randn(40, 5, dtype=F64, generator=g)
+    grad_mean = torch.randn(40, 3, dtype=F64, generator=g)
+    net = FlatMLP(policy.net)
+    with torch.no_grad():
+        activations = net.forward(x)
+        net.backward(activations, grad_mean)
+    out = policy.net(x)
+    assert torch.allclose(activations[-1], out, rtol=0, atol=1e-14)
+    expected = torch.autograd.grad(out, list(policy.net.parameters()), grad_mean)
+    assert torch.allclose(net.grad, torch.cat([e.flatten() for e in expected]), atol=1e-13)
+    with pytest.raises(LolgpsError, match="Linear, ReLU"):
+        FlatMLP(torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.Tanh(), torch.nn.Linear(2, 1)))
+
+
+def test_adam_and_rate_match_torch() -> None:
+    config = PolicyConfig(steps=40, learning_rate=0.01)
+    theta = torch.randn(30, dtype=F64, generator=torch.Generator().manual_seed(15))
+    reference = theta.clone().requires_grad_(True)
+    optimiser = torch.optim.Adam([reference], lr=config.learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimiser, T_max=config.steps, eta_min=0.05 * config.learning_rate
+    )
+    adam = Adam(theta)
+    for step in range(config.steps):
+        rate = optimiser.param_groups[0]["lr"]
+        assert cosine_rate(step, config) == pytest.approx(rate, rel=1e-14)
+        grad = torch.randn(30, dtype=F64, generator=torch.Generator().manual_seed(step))
+        reference.grad = grad.clone()
+        optimiser.step()
+        schedule.step()
+        adam.step(theta, grad, rate)
+    assert torch.equal(theta, reference.detach())
+
+
+def test_distill_matches_autograd_adam_on_kl_loss() -> None:
+    """The hand-written S-step against the plain one: autograd on :func:`kl_loss`,
+    ``torch.optim.Adam`` and ``CosineAnnealingLR`` on the same minibatches."""
+    batch = random_batch(M=300, dX=4, dU=3, seed=16)
+    config = PolicyConfig(hidden_sizes=(16, 16), steps=50, batch_size=32, pre_weight=0.3)
+    policy, reference = GaussianPolicy(4, 3, config), GaussianPolicy(4, 3, config)
+    history = distill(policy, batch, generator=torch.Generator().manual_seed(17))
+    reference.set_whitening(batch.x)
+    reference.set_variance(optimal_variance(batch, config.pre_weight))
+    optimiser = torch.optim.Adam(reference.net.parameters(), lr=config.learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimiser, T_max=config.steps, eta_min=0.05 * config.learning_rate
+    )
+    draws = torch.randint(300, (config.steps, 32), generator=torch.Generator().manual_seed(17))
+    expected = []
+    for rows in draws:
+        minibatch = DistillBatch(*(field[rows] for field in batch))
+        loss = kl_loss(reference(minibatch.x), reference.covariance(), minibatch, 0.3)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+        expected.append(loss.item())
+    assert history == pytest.approx(expected, rel=1e-12)
+    assert torch.allclose(policy(batch.x), reference(batch.x), rtol=0, atol=1e-12)
 
 
 def test_whitening_floors_the_std() -> None:

@@ -10,8 +10,10 @@ Layout: rows are states flattened over samples and time, ``[M, ...]``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -135,6 +137,128 @@ def _intra_op_threads(n: int | None) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
+class RowQuadratics(NamedTuple):
+    """Each row's S-step loss as one quadratic in the policy mean, by completing the square:
+
+        ``KL(pi || p_cur) + lambda h KL(pi || p_pre) = c + 1/2 (mu - mu*)^T Q (mu - mu*)``, with
+        ``Q = P_cur + lambda h P_pre``,  ``mu* = Q^{-1} (P_cur mu_cur + lambda h P_pre mu_pre)``,
+        ``c = [the mean-independent part, _row_constants]
+              + 1/2 [(mu_cur - mu*)^T P_cur (mu_cur - mu*) + lambda h (mu_pre - mu*)^T P_pre
+              (mu_pre - mu*)]``
+
+    (h = has_pre). Precomputed once per S-step, so each Adam step costs one ``[B, dU, dU]``
+    product instead of two quadratic forms with masking.
+    """
+
+    x: Tensor  # whitened states (x - x_mean) / x_std, [M, dX]
+    prec: Tensor  # Q, [M, dU, dU]
+    mean: Tensor  # mu*, [M, dU]
+    constant: Tensor  # c, [M]
+
+
+def row_quadratics(policy: GaussianPolicy, batch: DistillBatch, pre_weight: float) -> RowQuadratics:
+    """The batch's :class:`RowQuadratics` for ``policy``'s whitening and ``Sigma_pi``."""
+    has_pre = batch.has_pre[:, None]
+    # where (not a product) so that whatever rows without p_pre hold never reaches the result
+    prec_pre = pre_weight * torch.where(has_pre[..., None], batch.prec_pre, 0.0)
+    mean_pre = torch.where(has_pre, batch.mean_pre, 0.0)[..., None]  # [M, dU, 1]
+    mean_cur = batch.mean_cur[..., None]
+    prec = batch.prec_cur + prec_pre
+    chol, info = torch.linalg.cholesky_ex(prec)
+    if bool(info.any()):
+        raise LolgpsError("P_cur + lambda P_pre is not positive definite")
+    mean = torch.cholesky_solve(batch.prec_cur @ mean_cur + prec_pre @ mean_pre, chol)
+    d_cur, d_pre = mean_cur - mean, mean_pre - mean
+    residual = (d_cur.mT @ batch.prec_cur @ d_cur + d_pre.mT @ prec_pre @ d_pre).flatten()
+    constant = _row_constants(policy.covariance(), batch, pre_weight) + 0.5 * residual
+    x = (batch.x - policy.x_mean) / policy.x_std
+    return RowQuadratics(x, prec, mean.squeeze(-1), constant)
+
+
+class FlatMLP:
+    """The policy's ``Linear, ReLU, ..., Linear`` net with its weights in one flat vector and its
+    gradient by hand (backpropagation), with no autograd graph:
+
+        ``h_0 = x,  h_{l+1} = relu(h_l W_l^T + b_l),  mu = h_L W_L^T + b_L``;
+        from ``g_L = dL/dmu``:  ``dL/dW_l = g_l^T h_l``,  ``dL/db_l = sum_rows g_l``,
+        ``g_{l-1} = (g_l W_l) [h_l > 0]``.
+
+    ``flat`` and ``grad`` are ``[n_weights]``; the layers' weights are views into them, so one
+    optimiser update of ``flat`` updates every layer. :meth:`write_back` copies them to the net.
+    """
+
+    def __init__(self, net: torch.nn.Module) -> None:
+        modules = list(net.children())
+        kinds = [torch.nn.Linear if i % 2 == 0 else torch.nn.ReLU for i in range(len(modules))]
+        if len(modules) % 2 == 0 or not all(map(isinstance, modules, kinds)):
+            raise LolgpsError(f"the S-step needs a Linear, ReLU, ..., Linear net, got {net}")
+        self.layers = [m for m in modules[0::2] if isinstance(m, torch.nn.Linear)]
+        tensors = [t for layer in self.layers for t in (layer.weight, layer.bias)]
+        self.flat = torch.cat([t.detach().flatten() for t in tensors])
+        self.grad = torch.zeros_like(self.flat)
+        params, grads, start = [], [], 0
+        for t in tensors:
+            params.append(self.flat[start : start + t.numel()].view_as(t))
+            grads.append(self.grad[start : start + t.numel()].view_as(t))
+            start += t.numel()
+        self.weights, self.biases = params[0::2], params[1::2]
+        self.weight_grads, self.bias_grads = grads[0::2], grads[1::2]
+
+    def forward(self, x: Tensor) -> list[Tensor]:
+        """The activations ``[h_0, ..., h_L, mu]`` at ``x: [B, dX]``."""
+        activations = [x]
+        last = len(self.weights) - 1
+        for layer, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+            h = torch.addmm(bias, activations[-1], weight.t())
+            activations.append(h if layer == last else h.relu_())
+        return activations
+
+    def backward(self, activations: list[Tensor], grad_mean: Tensor) -> None:
+        """Fill ``grad`` from :meth:`forward`'s activations and ``dL/dmu: [B, dU]``."""
+        g = grad_mean
+        for layer in range(len(self.weights) - 1, -1, -1):
+            h = activations[layer]
+            torch.mm(g.t(), h, out=self.weight_grads[layer])
+            torch.sum(g, 0, out=self.bias_grads[layer])
+            if layer > 0:
+                g = torch.ops.aten.threshold_backward(g.mm(self.weights[layer]), h, 0)
+
+    def write_back(self) -> None:
+        """Copy the flat weights into the net's parameters."""
+        for layer, weight, bias in zip(self.layers, self.weights, self.biases, strict=True):
+            layer.weight.copy_(weight)
+            layer.bias.copy_(bias)
+
+
+class Adam:
+    """Adam with torch's defaults (``beta = (0.9, 0.999)``, ``eps = 1e-8``) and the arithmetic of
+    ``torch.optim.Adam``, on one flat vector (one update for the whole net):
+
+        ``m <- beta1 m + (1 - beta1) g``,  ``v <- beta2 v + (1 - beta2) g^2``,
+        ``theta <- theta - lr_t / (1 - beta1^t) m / (sqrt(v) / sqrt(1 - beta2^t) + eps)``.
+    """
+
+    def __init__(self, like: Tensor, betas: tuple[float, float] = (0.9, 0.999)) -> None:
+        self.m, self.v = torch.zeros_like(like), torch.zeros_like(like)
+        self.betas, self.eps, self.t = betas, 1e-8, 0
+
+    def step(self, theta: Tensor, grad: Tensor, rate: float) -> None:
+        """Update ``theta`` in place from ``grad`` with learning rate ``rate``."""
+        beta1, beta2 = self.betas
+        self.t += 1
+        self.m.lerp_(grad, 1 - beta1)
+        self.v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+        denom = (self.v.sqrt() / (1 - beta2**self.t) ** 0.5).add_(self.eps)
+        theta.addcdiv_(self.m, denom, value=-rate / (1 - beta1**self.t))
+
+
+def cosine_rate(step: int, config: PolicyConfig) -> float:
+    """Learning rate of Adam step ``step`` (from 0), a cosine from ``config.learning_rate`` down
+    towards 5% of it: ``lr_t = lr_min + (lr - lr_min) (1 + cos(pi t / steps)) / 2``."""
+    rate, floor = config.learning_rate, 0.05 * config.learning_rate
+    return floor + (rate - floor) * (1 + math.cos(math.pi * step / config.steps)) / 2
+
+
 def distill(
     policy: GaussianPolicy,
     batch: DistillBatch,
@@ -144,12 +268,17 @@ def distill(
     """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8).
 
     Steps: whitening from ``batch.x``; ``Sigma_pi`` in closed form (:func:`optimal_variance`);
-    then ``config.steps`` Adam steps (fresh optimiser state, learning rate decayed along a
-    cosine to 5% of ``config.learning_rate``) on minibatches of
-    ``config.batch_size`` rows drawn uniformly with replacement, from the current weights (the
-    policy keeps what earlier S-steps taught it), on ``config.num_threads`` intra-op threads.
-    Only the precision-weighted regression term depends on theta; the loss recorded per step is
-    the full KL loss of that minibatch. Marks the policy trained. Deterministic for a given
+    each row's loss as one quadratic in ``mu`` (:class:`RowQuadratics`); then ``config.steps``
+    :class:`Adam` steps (fresh optimiser state, learning rate decayed along a cosine to 5% of
+    ``config.learning_rate``, :func:`cosine_rate`) on minibatches of ``config.batch_size`` rows
+    drawn uniformly with replacement, from the current weights (the policy keeps what earlier
+    S-steps taught it), on ``config.num_threads`` intra-op threads, with the gradient of
+
+        ``L_B = 1/B sum_rows [c + 1/2 (mu - mu*)^T Q (mu - mu*)]``,
+        ``dL_B/dmu = Q (mu - mu*) / B``
+
+    backpropagated by hand (:class:`FlatMLP`). The loss recorded per step is ``L_B``, the full
+    KL loss of that minibatch. Marks the policy trained. Deterministic for a given
     ``generator`` state.
 
     :param policy: the global policy, trained in place.
@@ -164,24 +293,22 @@ def distill(
     batch = DistillBatch(*(field.detach() for field in batch))
     policy.set_whitening(batch.x)
     policy.set_variance(optimal_variance(batch, config.pre_weight))
-    with torch.no_grad():
-        constants = _row_constants(policy.covariance(), batch, config.pre_weight)  # [M]
-    optimiser = torch.optim.Adam(policy.net.parameters(), lr=config.learning_rate)
-    # cosine decay to 5% of the rate: large early steps, a settled fit at the end
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
-        optimiser, T_max=config.steps, eta_min=0.05 * config.learning_rate
-    )
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
-    history: list[float] = []
-    with _intra_op_threads(config.num_threads):
-        for rows in draws.to(batch.x.device):
-            minibatch = DistillBatch(*(field[rows] for field in batch))
-            quadratics = _row_quadratics(policy(minibatch.x), minibatch, config.pre_weight)
-            loss = (quadratics + constants[rows]).mean()
-            optimiser.zero_grad()
-            loss.backward()
-            optimiser.step()
-            schedule.step()
-            history.append(loss.item())
+    draws = draws.to(batch.x.device)
+    quadratic = batch.x.new_empty(config.steps)  # sum_rows (mu - mu*)^T Q (mu - mu*) per step
+    with _intra_op_threads(config.num_threads), torch.no_grad():
+        rows_all = row_quadratics(policy, batch, config.pre_weight)
+        net = FlatMLP(policy.net)
+        adam = Adam(net.flat)
+        for step, rows in enumerate(draws):
+            x, prec, target = (field.index_select(0, rows) for field in rows_all[:3])
+            activations = net.forward(x)
+            diff = activations[-1] - target  # [B, dU]
+            prec_diff = (prec * diff.unsqueeze(-2)).sum(-1)  # Q (mu - mu*), [B, dU]
+            torch.dot(diff.view(-1), prec_diff.view(-1), out=quadratic[step])
+            net.backward(activations, prec_diff.div_(config.batch_size))
+            adam.step(net.flat, net.grad, cosine_rate(step, config))
+        net.write_back()
+        history = rows_all.constant[draws].mean(1) + 0.5 * quadratic / config.batch_size
     policy.trained = True
-    return history
+    return history.tolist()
