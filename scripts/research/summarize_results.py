@@ -112,6 +112,12 @@ def eval_tables(runs: list[str]) -> None:
                 for k in range(n_areas)
             ]
             print(f"| {method} | {st['name']} | " + " | ".join(cells) + " |")
+    forgetting_table(by_method)
+
+
+def forgetting_table(by_method: dict[str, list[dict[str, Any]]]) -> None:
+    """The forgetting of success on areas 0 and 2 and the average final success per method,
+    mean ± sd over its seeds' evaluations."""
     print(
         "\n| method | seeds | forgetting of success, area 0 (points) | forgetting of success, area 2 (points) | average final success |"
     )
