@@ -46,10 +46,19 @@ class PegTask:
         self.arm: ArmSpec = load_arm(config.urdf, config.ee_link, config.peg)
         self.layout = StateLayout(self.arm.dof)
         self.kinematics = PegKinematics(self.arm, self.device)
-        self.geometry = place_task(self.arm, self.kinematics, config.placement)
-        self.sampler = Sampler(
-            self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0, n_worlds, device
-        )
+        try:  # an arm the loader accepts can still be one no pose or simulation works for
+            self.geometry = place_task(self.arm, self.kinematics, config.placement)
+            self.sampler = Sampler(
+                self.arm,
+                config.world,
+                self.geometry.nominal_mouth,
+                self.geometry.q0,
+                n_worlds,
+                device,
+            )
+        except (pb.error, torch.linalg.LinAlgError) as error:
+            message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
+            raise LolgpsError(f"{config.urdf}: the arm cannot be simulated: {message}") from None
         effort = torch.tensor(self.arm.effort, dtype=torch.float64)
         self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
 
@@ -97,12 +106,12 @@ class PegTask:
     def score(
         self, x: Tensor, u: Tensor, final: Tensor, offsets: Sequence[tuple[float, float]]
     ) -> Trajectories:
-        """Rollouts ``x: [N, T, dX]``, ``u: [N, T, dU]`` with final tip distances ``[N]`` at the
-        hole ``offsets``, with their per-step cost ``l(x_t, u_t)`` and success
-        (``final < success_threshold``)."""
-        cost = self.cost.evaluate(x, u, self.targets(offsets)[:, None])
+        """Rollouts ``x: [N, T+1, dX]`` (``x_T`` after the last action), ``u: [N, T, dU]``
+        with final tip distances ``[N]`` at the hole ``offsets``, with their per-step cost
+        ``l(x_t, u_t)`` and success (``final < success_threshold``)."""
+        cost = self.cost.evaluate(x[:, :-1], u, self.targets(offsets)[:, None])
         success = final < self.config.world.success_threshold
-        return Trajectories(x, u, cost, final, success)
+        return Trajectories(x[:, :-1], u, cost, final, success, x[:, -1])
 
     def close(self) -> None:
         self.sampler.close()
