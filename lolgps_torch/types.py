@@ -72,7 +72,8 @@ class Trajectories(NamedTuple):
 
     x: ``[N, T, dX]`` states, u: ``[N, T, dU]`` actions, cost: ``[N, T]`` per-step cost,
     final_distance: ``[N]`` peg-tip distance to the hole-floor target at the last step (m),
-    success: ``[N]`` bool, ``final_distance < success_threshold``.
+    success: ``[N]`` bool, ``final_distance < success_threshold``,
+    final_state: ``[N, dX]`` the state ``x_T`` after the last action (stored, not learned from).
     """
 
     x: Tensor
@@ -80,6 +81,7 @@ class Trajectories(NamedTuple):
     cost: Tensor
     final_distance: Tensor
     success: Tensor
+    final_state: Tensor
 
     @property
     def N(self) -> int:
@@ -113,7 +115,8 @@ class ConditionSamples(NamedTuple):
     x: ``[M, T, dX]``, u: ``[M, T, dU]``, cost: ``[M, T]``, final_distance: ``[M]``,
     mean_cur / mean_pre: ``[M, T, dU]`` action means of p_cur / p_pre at ``x``,
     prec_cur / prec_pre: ``[M, T, dU, dU]`` their precisions, has_pre: ``[M]`` bool (false where
-    no p_pre existed; its mean and precision are then zeros).
+    no p_pre existed; its mean and precision are then zeros), final_state: ``[M, dX]`` the state
+    ``x_T`` after the last action (None where not recorded: replays written before it was).
     """
 
     x: Tensor
@@ -125,6 +128,7 @@ class ConditionSamples(NamedTuple):
     mean_pre: Tensor
     prec_pre: Tensor
     has_pre: Tensor
+    final_state: Tensor | None = None
 
     def to_batch(self) -> DistillBatch:
         """Flatten samples and time into the rows of a :class:`DistillBatch` (``M T`` rows)."""

@@ -6,8 +6,10 @@
 
 For --format minari, --out is the dataset folder: its name is the Minari dataset id (NAME-vN)
 and its parent the datasets root, so ``MINARI_DATASETS_PATH=<parent>`` and
-``minari.load_dataset("<name>")`` open it. Run it from the folder the run was started in (the
-run's config names its URDF by a relative path). An existing output is kept unless --force.
+``minari.load_dataset("<name>")`` open it, and its ``recover_environment()`` rebuilds the run's
+task. The arm is read from the run folder's copy of its URDF; runs made before runs kept one
+name it by the path they were given: export those from the folder the run was started in.
+An existing output is kept unless --force. On a terminal, progress bars show on stderr.
 """
 
 from __future__ import annotations
@@ -16,7 +18,6 @@ import argparse
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import export_hdf5, export_minari
-from lolgps_torch.errors import LolgpsError
 
 
 def parse_args() -> argparse.Namespace:
@@ -29,22 +30,13 @@ def parse_args() -> argparse.Namespace:
     )
     parser.add_argument("--format", choices=("hdf5", "minari"), default="hdf5")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
-    parser.add_argument(
-        "--include-eval",
-        action="store_true",
-        help="hdf5 only: copy the run's eval_rollouts.h5 verbatim into /eval (error if absent)",
-    )
     return parser.parse_args()
 
 
 def main() -> None:
     args = parse_args()
-    if args.format == "minari":
-        if args.include_eval:
-            raise LolgpsError("--include-eval is only supported with --format hdf5")
-        report = export_minari(args.run, args.out, force=args.force)
-    else:
-        report = export_hdf5(args.run, args.out, force=args.force, include_eval=args.include_eval)
+    export = export_minari if args.format == "minari" else export_hdf5
+    report = export(args.run, args.out, force=args.force)
     print(
         f"wrote {report.path}: {report.trajectories} trajectories, {report.steps} steps, "
         f"{report.megabytes:.1f} MB in {report.seconds:.1f} s"

@@ -25,12 +25,13 @@ from lolgps_torch.data import (
     export_minari,
     load_dataset,
 )
+from lolgps_torch.data.run_folder import RunFolder, portable_urdf, task_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout
-from lolgps_torch.task import TaskConfig
-from lolgps_torch.types import ConditionSamples
+from lolgps_torch.task import PegTask, TaskConfig, task_config_from_dict
+from lolgps_torch.types import ConditionSamples, Trajectories
 
 F64 = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,6 +60,7 @@ def make_samples(M: int, T: int, has_pre: bool, seed: int) -> ConditionSamples:
         mean_pre=pre * torch.randn(M, T, dU, dtype=F64, generator=g),
         prec_pre=pre * (A.mT @ A + torch.eye(dU, dtype=F64)),
         has_pre=torch.full((M,), has_pre),
+        final_state=torch.randn(M, dX, dtype=F64, generator=g),
     )
 
 
@@ -101,11 +103,16 @@ def replay_rows(run_dir: Path) -> dict[int, ConditionSamples]:
     return {i: replay.read_condition(i).samples for i in replay.conditions()}
 
 
+def states_of(samples: ConditionSamples) -> torch.Tensor:
+    """The T+1 states ``[M, T+1, dX]`` of replay samples."""
+    assert samples.final_state is not None
+    return torch.cat([samples.x, samples.final_state[:, None]], 1)
+
+
 def test_round_trip_gives_the_replay(run_dir: Path, exported: Path) -> None:
     data, meta = load_dataset(exported)
     replay = replay_rows(run_dir)
     pairs = {
-        "states": "x",
         "actions": "u",
         "cost": "cost",
         "final_distance": "final_distance",
@@ -118,6 +125,7 @@ def test_round_trip_gives_the_replay(run_dir: Path, exported: Path) -> None:
     for index, samples in replay.items():
         rows = data.condition == index
         assert int(rows.sum()) == COUNTS[index]
+        assert torch.equal(data.states[rows], states_of(samples))
         for ours, theirs in pairs.items():
             a, b = getattr(data, ours)[rows], getattr(samples, theirs)
             assert a.dtype == b.dtype and torch.equal(a, b), ours
@@ -128,7 +136,7 @@ def test_round_trip_gives_the_replay(run_dir: Path, exported: Path) -> None:
 
     arm = load_arm(URDF)
     layout = StateLayout(arm.dof)
-    assert meta["schema_version"] == 1 and meta["method"] == "lolgps"
+    assert meta["schema_version"] == 2 and meta["method"] == "lolgps"
     assert meta["arm"]["joint_names"] == list(arm.joint_names)
     assert meta["arm"]["ee_link"] == arm.ee_link
     text = meta["arm"]["urdf_text"]
@@ -144,7 +152,6 @@ def test_round_trip_gives_the_replay(run_dir: Path, exported: Path) -> None:
     mouth = np.array(meta["arm"]["nominal_hole_mouth"])
     for c in meta["conditions"]:
         assert np.allclose(c["hole_mouth"], mouth + [*c["hole_offset"], 0.0])
-    assert meta["has_eval"] is False
 
 
 def test_load_filters_by_condition_and_success(exported: Path) -> None:
@@ -155,7 +162,7 @@ def test_load_filters_by_condition_and_success(exported: Path) -> None:
     for name, tensor in data._asdict().items():
         assert torch.equal(tensor, getattr(everything, name)[want]), name
     empty, _ = load_dataset(exported, conditions=[1])
-    assert empty.states.shape == (0, 6, 26)
+    assert empty.states.shape == (0, 7, 26)
     with pytest.raises(LolgpsError, match="holds no condition 7"):
         load_dataset(exported, conditions=[7])
 
@@ -166,24 +173,116 @@ def test_minari_load_dataset_iterates_every_episode(
     minari = pytest.importorskip("minari")
     report = export_minari(run_dir, tmp_path / "peg-test-v0")
     N, T = sum(COUNTS), 6
-    assert (report.trajectories, report.steps) == (N, N * (T - 1))
+    assert (report.trajectories, report.steps) == (N, N * T)
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
     dataset = minari.load_dataset("peg-test-v0")
-    assert (dataset.total_episodes, dataset.total_steps) == (N, N * (T - 1))
+    assert (dataset.total_episodes, dataset.total_steps) == (N, N * T)
     assert dataset.observation_space.shape == (26,) and dataset.action_space.shape == (7,)
     expected = [
-        row for c in replay_rows(run_dir).values() for row in zip(c.x, c.u, c.cost, strict=True)
+        row
+        for c in replay_rows(run_dir).values()
+        for row in zip(states_of(c), c.u, c.cost, strict=True)
     ]
     episodes = list(dataset.iterate_episodes())
     assert len(episodes) == N and sum(len(ep) for ep in episodes) == dataset.total_steps
     for episode, (x, u, cost) in zip(episodes, expected, strict=True):
         assert np.array_equal(episode.observations, x.numpy())
-        assert np.array_equal(episode.actions, u[:-1].numpy())
-        assert np.array_equal(episode.rewards, -cost[:-1].numpy())
-        assert not episode.terminations.any() and episode.truncations.tolist() == [0] * 4 + [1]
+        assert np.array_equal(episode.actions, u.numpy())
+        assert np.array_equal(episode.rewards, -cost.numpy())
+        assert not episode.terminations.any() and episode.truncations.tolist() == [0] * 5 + [1]
     meta = list(dataset.storage.get_episode_metadata(range(N)))
     assert [int(m["condition"]) for m in meta] == [0] * 3 + [2] * 4
-    assert dataset.storage.metadata["lolgps_torch"]["schema_version"] == 1
+    assert dataset.storage.metadata["lolgps_torch"]["schema_version"] == 2
+    spec = dataset.env_spec
+    assert spec.id == "lolgps_torch/PegInsertion-v0" and spec.max_episode_steps == T
+    task = task_config_from_dict(spec.kwargs["task_config"])
+    assert task.world.T == T and Path(task.urdf).is_absolute()
+    assert Path(task.urdf).read_bytes() == Path(URDF).read_bytes()
+
+
+def as_samples(rollouts: Trajectories, rows: slice) -> ConditionSamples:
+    """Rollouts as replay samples, with no controller labels (zeros)."""
+    x, u = rollouts.x[rows], rollouts.u[rows]
+    dU = u.shape[-1]
+    zeros = torch.zeros(*u.shape[:2], dU, dU, dtype=F64)
+    return ConditionSamples(
+        x=x,
+        u=u,
+        cost=rollouts.cost[rows],
+        final_distance=rollouts.final_distance[rows],
+        mean_cur=torch.zeros_like(u),
+        prec_cur=zeros + torch.eye(dU, dtype=F64),
+        mean_pre=torch.zeros_like(u),
+        prec_pre=zeros,
+        has_pre=torch.zeros(x.shape[0], dtype=torch.bool),
+        final_state=rollouts.final_state[rows],
+    )
+
+
+def test_recovered_env_replays_every_episode(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Rollouts of random torques (two worlds, so one world runs two of them), exported with
+    their run folder's URDF copy; each episode's actions, replayed in the recovered
+    environment from its reset options, give its observations and final tip distance."""
+    minari = pytest.importorskip("minari")
+    config = TaskConfig(urdf=URDF)
+    config = replace(config, world=replace(config.world, T=30))
+    offsets = [(0.02, 0.02), (-0.01, 0.0), (0.0, -0.015)]
+    task = PegTask(config, n_worlds=2)
+    effort = torch.tensor(task.arm.effort, dtype=F64)
+    g = torch.Generator().manual_seed(0)
+    torques = 0.3 * effort * torch.randn(3, 30, 7, dtype=F64, generator=g)
+    rollouts = task.sample(lambda t, x, rows: torques[rows, t], offsets)
+    task.close()
+    folder = RunFolder(tmp_path / "run")
+    urdf_text = portable_urdf(URDF)
+    run_config = {"method": "lolgps", "seed": 0, "task": task_json(config, urdf_text)}
+    folder.start({**run_config, "conditions": [list(o) for o in offsets]}, urdf_text)
+    replay = ReplayBuffer(folder.replay_path)
+    for index, offset in enumerate(offsets):
+        replay.append_condition(index, offset, as_samples(rollouts, slice(index, index + 1)), 1)
+    export_minari(folder.path, tmp_path / "peg-real-v0")
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    dataset = minari.load_dataset("peg-real-v0")
+    assert dataset.env_spec.kwargs["task_config"]["urdf"] == str(folder.urdf_path.resolve())
+    env = dataset.recover_environment()
+    meta = dataset.storage.get_episode_metadata(range(3))
+    for episode, info in zip(dataset.iterate_episodes(), meta, strict=True):
+        obs, _ = env.reset(options=info["options"])
+        observations = [obs]
+        for action in episode.actions:
+            obs, _, _, truncated, step_info = env.step(action)
+            observations.append(obs)
+        assert truncated
+        assert np.allclose(observations, episode.observations, rtol=0.0, atol=1e-6)
+        assert abs(step_info["tip_distance"] - info["final_distance"]) < 1e-6
+    env.close()
+
+
+def test_schema_1_files_still_load(exported: Path, tmp_path: Path) -> None:
+    """A version-1 file (the first T states only) loads with its T states."""
+    old = tmp_path / "v1.h5"
+    shutil.copyfile(exported, old)
+    with h5py.File(old, "a") as f:
+        f.attrs["schema_version"] = 1
+        states = f["trajectories/states"][()]
+        del f["trajectories/states"]
+        f["trajectories"].create_dataset("states", data=states[:, :-1])
+    data, meta = load_dataset(old)
+    assert meta["schema_version"] == 1
+    assert torch.equal(data.states, load_dataset(exported)[0].states[:, :-1])
+
+
+def test_replay_without_final_states_is_refused(run_dir: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    shutil.copyfile(run_dir / "config.json", run / "config.json")
+    samples = make_samples(2, 6, has_pre=False, seed=0)._replace(final_state=None)
+    ReplayBuffer(run / "replay.h5").append_condition(0, OFFSETS[0], samples, iterations=1)
+    with pytest.raises(LolgpsError, match="before replays kept the state after the last action"):
+        export_hdf5(run, tmp_path / "out.h5")
+    assert not (tmp_path / "out.h5").exists()
 
 
 def test_corrupt_and_foreign_datasets_raise(exported: Path, tmp_path: Path) -> None:
@@ -195,8 +294,8 @@ def test_corrupt_and_foreign_datasets_raise(exported: Path, tmp_path: Path) -> N
     other = tmp_path / "other.h5"
     shutil.copyfile(exported, other)
     with h5py.File(other, "a") as f:
-        f.attrs["schema_version"] = 2
-    with pytest.raises(LolgpsError, match="schema version 2"):
+        f.attrs["schema_version"] = 3
+    with pytest.raises(LolgpsError, match="schema version 3"):
         load_dataset(other)
     with pytest.raises(LolgpsError, match="not a lolgps_torch dataset"):
         load_dataset(exported.parent / "run" / "replay.h5")
@@ -219,22 +318,6 @@ def test_overwrite_needs_force(run_dir: Path, tmp_path: Path) -> None:
     export_minari(run_dir, folder, force=True)
     assert (folder / "data" / "metadata.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.h5", "peg-test-v0"]
-
-
-def test_include_eval_copies_the_rollouts_file(run_dir: Path, tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    shutil.copytree(run_dir, run)
-    with pytest.raises(LolgpsError, match="eval_rollouts.h5 not found"):
-        export_hdf5(run, tmp_path / "out.h5", include_eval=True)
-    assert not (tmp_path / "out.h5").exists()
-    with h5py.File(run / "eval_rollouts.h5", "w") as f:
-        f.attrs["stage"] = "train0"
-        f.create_dataset("final_distance", data=np.arange(4.0))
-    export_hdf5(run, tmp_path / "out.h5", include_eval=True)
-    assert load_dataset(tmp_path / "out.h5")[1]["has_eval"] is True
-    with h5py.File(tmp_path / "out.h5", "r") as f:
-        assert f["eval"].attrs["stage"] == "train0"
-        assert f["eval/final_distance"][()].tolist() == [0.0, 1.0, 2.0, 3.0]
 
 
 def run_script(args: list[str], monkeypatch: pytest.MonkeyPatch) -> int:

@@ -76,6 +76,11 @@ def test_rewards_are_the_task_costs_and_observations_stay_in_bounds(
     task = env.task.sample(lambda t, x, rows: torques[t][None], [(0.01, -0.01)])
     assert np.allclose(-np.array(rewards), task.cost[0].numpy(), rtol=1e-12, atol=0.0)
     assert np.allclose(np.array(states[:-1]), task.x[0].numpy(), rtol=0.0, atol=1e-9)
+    assert np.allclose(states[-1], task.final_state[0].numpy(), rtol=0.0, atol=1e-9)
+    tip = env.task.layout.points.start
+    assert float(task.final_state[0, tip : tip + 3].norm()) == pytest.approx(
+        float(task.final_distance[0]), abs=1e-12
+    )
     assert info["tip_distance"] == pytest.approx(float(task.final_distance[0]), abs=1e-9)
 
 

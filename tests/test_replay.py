@@ -20,7 +20,10 @@ from lolgps_torch.types import ConditionSamples, LinearGaussian
 F64 = torch.float64
 
 
-def make_samples(M: int, T: int, dX: int, dU: int, has_pre: bool, seed: int) -> ConditionSamples:
+def make_samples(
+    M: int, T: int, dX: int, dU: int, has_pre: bool, seed: int, final: bool = True
+) -> ConditionSamples:
+    """Random samples; without ``final``, no final state (as replays written before it)."""
     g = torch.Generator().manual_seed(seed)
     A = torch.randn(M, T, dU, dU, dtype=F64, generator=g)
     pre = float(has_pre)
@@ -34,17 +37,21 @@ def make_samples(M: int, T: int, dX: int, dU: int, has_pre: bool, seed: int) -> 
         mean_pre=pre * torch.randn(M, T, dU, dtype=F64, generator=g),
         prec_pre=pre * (A.mT @ A + torch.eye(dU, dtype=F64)),
         has_pre=torch.full((M,), has_pre),
+        final_state=torch.randn(M, dX, dtype=F64, generator=g) if final else None,
     )
 
 
 def assert_samples_equal(a: ConditionSamples, b: ConditionSamples) -> None:
     for name, x, y in zip(ConditionSamples._fields, a, b, strict=True):
-        assert x.dtype == y.dtype and torch.equal(x, y), name
+        if x is None or y is None:
+            assert x is None and y is None, name
+        else:
+            assert x.dtype == y.dtype and torch.equal(x, y), name
 
 
 @pytest.fixture
 def two_conditions() -> tuple[ConditionSamples, ConditionSamples]:
-    return make_samples(3, 5, 4, 2, False, seed=0), make_samples(2, 5, 4, 2, True, seed=1)
+    return make_samples(3, 5, 4, 2, False, 0, final=False), make_samples(2, 5, 4, 2, True, 1)
 
 
 def raw_group(path: Path, name: str) -> dict[str, tuple[bytes, list[bytes]]]:

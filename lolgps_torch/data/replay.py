@@ -6,6 +6,7 @@ File layout: root attributes ``format`` and ``version``; one group per condition
     ``x [M, T, dX]``, ``u [M, T, dU]``, ``cost [M, T]``, ``final_distance [M]``,
     ``mean_cur [M, T, dU]``, ``prec_cur [M, T, dU, dU]``, ``mean_pre [M, T, dU]``,
     ``prec_pre [M, T, dU, dU]`` (float64, zeros where absent), ``has_pre [M]`` (bool),
+    ``final_state [M, dX]`` (the state after the last action; absent from older files),
 and attributes ``condition`` (index), ``offset`` (hole offset dx, dy in m), ``iterations``.
 The condition's final controllers, which label states the S-step visits later (policy
 corrections), are stored with it when given: ``cur_K [T, dU, dX]``, ``cur_k [T, dU]``,
@@ -30,6 +31,7 @@ import h5py
 import numpy as np
 import torch
 
+from lolgps_torch.data.run_folder import fsync_path, write_error
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian
 
@@ -67,6 +69,7 @@ def _expected_shapes(samples: ConditionSamples) -> dict[str, tuple[int, ...]]:
         "mean_pre": (M, T, dU),
         "prec_pre": (M, T, dU, dU),
         "has_pre": (M,),
+        **({} if samples.final_state is None else {"final_state": (M, dX)}),
     }
 
 
@@ -106,15 +109,6 @@ def _read_controller(
     )
 
 
-def fsync_path(path: Path) -> None:
-    """Flush ``path`` (a file or a directory) to disk."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _one_line(error: BaseException) -> str:
     text = str(error.args[0] if error.args else error).strip()
     return text.splitlines()[0] if text else type(error).__name__
@@ -127,7 +121,8 @@ class ReplayBuffer:
     the new group is written there, the copy is closed and fsynced and then ``os.replace``-d onto
     ``path``. A crash at any point (even SIGKILL) leaves the previous file untouched; earlier
     groups are copied byte for byte. One writer per file: a stale ``.partial`` from a crash is
-    overwritten by the next append.
+    overwritten by the next append. A failed write (a full disk) is a :class:`LolgpsError`
+    naming the file; the ``.partial`` copy is removed.
 
     :param path: the HDF5 file (need not exist yet: an absent file is an empty replay).
     """
@@ -219,8 +214,8 @@ class ReplayBuffer:
             fsync_path(tmp)
             os.replace(tmp, self.path)
             fsync_path(self.path.parent)
-        except OSError as error:
-            raise LolgpsError(f"cannot write replay {self.path}: {_one_line(error)}") from error
+        except OSError as error:  # a full disk: the previous file is kept
+            raise write_error(self.path, error) from error
         finally:
             tmp.unlink(missing_ok=True)
 
@@ -245,7 +240,9 @@ class ReplayBuffer:
             raise LolgpsError(f"replay {self.path} holds no condition {index}")
         group = f[name]
         tensors = {
-            key: torch.from_numpy(group[key][()]).to(device) for key in ConditionSamples._fields
+            key: torch.from_numpy(group[key][()]).to(device)
+            for key in ConditionSamples._fields
+            if key in group  # final_state is absent from groups written before it was stored
         }
         controllers = [_read_controller(group, prefix, device) for prefix in ("cur", "pre")]
         dx, dy = (float(v) for v in group.attrs["offset"])

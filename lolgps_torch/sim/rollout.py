@@ -53,8 +53,9 @@ class Sampler:
     def rollout(
         self, act: Actor, offsets: Sequence[tuple[float, float]]
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Run one episode per hole offset; returns x ``[N, T, dX]``, u ``[N, T, dU]`` and the
-        final tip distance ``[N]`` (float64 tensors on the sampler's device)."""
+        """Run one episode of T actions per hole offset; returns the states x ``[N, T+1, dX]``
+        (``x_T`` the state after the last action), u ``[N, T, dU]`` and the final tip distance
+        ``[N]`` (float64 tensors on the sampler's device)."""
         T = self.config.T
         results_x, results_u, results_d = [], [], []
         for start in range(0, len(offsets), len(self.worlds)):
@@ -63,18 +64,15 @@ class Sampler:
             for world, off in zip(worlds, chunk, strict=True):
                 world.set_hole(off)
             x_np = np.stack([w.reset(self.q0) for w in worlds])
-            xs = np.empty((len(chunk), T, x_np.shape[1]))
+            xs = np.empty((len(chunk), T + 1, x_np.shape[1]))
             us = np.empty((len(chunk), T, len(self.q0)))
             for t in range(T):
                 xs[:, t] = x_np
                 x_t = torch.from_numpy(x_np).to(self.device)
                 u_np = act(t, x_t, slice(start, start + len(chunk))).cpu().numpy()
                 us[:, t] = u_np
-                if t < T - 1:
-                    x_np = np.stack([w.step(u) for w, u in zip(worlds, u_np, strict=True)])
-                else:  # the last action is applied too, so the final distance reflects it
-                    for w, u in zip(worlds, u_np, strict=True):
-                        w.step(u)
+                x_np = np.stack([w.step(u) for w, u in zip(worlds, u_np, strict=True)])
+            xs[:, T] = x_np
             results_x.append(xs)
             results_u.append(us)
             results_d.append([w.tip_distance() for w in worlds])
