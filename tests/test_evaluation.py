@@ -3,12 +3,14 @@ and one small evaluation of a fabricated run folder (deterministic, independent 
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import multiprocessing
 import multiprocessing.spawn
 import runpy
 import shutil
+import statistics
 import subprocess
 import sys
 import types
@@ -35,12 +37,11 @@ from lolgps_torch.evaluation.jobs import run_jobs
 from lolgps_torch.evaluation.metrics import (
     aggregate,
     average_final_success,
+    bootstrap_mean_ci,
     first_training_stage,
     forgetting,
     forward_transfer,
-    mean_ci,
     mean_defined,
-    t_quantile,
     wilson_interval,
 )
 from lolgps_torch.evaluation.plot import plot_fig4
@@ -109,22 +110,48 @@ def test_default_training_stream() -> None:
 # -- metrics ------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(
-    ("dof", "table"),  # t_{0.975, nu} from printed tables
-    [(1, 12.7062), (2, 4.3027), (3, 3.1824), (4, 2.7764), (9, 2.2622), (49, 2.0096)],
-)
-def test_t_quantile_matches_tables(dof: int, table: float) -> None:
-    assert t_quantile(0.975, dof) == pytest.approx(table, rel=2e-3)
+def _exact_bootstrap_quantiles(values: list[float], confidence: float) -> tuple[float, float]:
+    """The percentile interval of the exact bootstrap distribution of the mean: all n^n
+    equally likely resamples enumerated."""
+    means = sorted(
+        sum(draw) / len(values) for draw in itertools.product(values, repeat=len(values))
+    )
+    tail = (1.0 - confidence) / 2.0
+    return means[int(tail * len(means))], means[int((1.0 - tail) * len(means)) - 1]
 
 
-def test_mean_ci() -> None:
-    interval = mean_ci([1.0, 2.0, 3.0, 4.0, 5.0])
-    half = 2.7764 * math.sqrt(2.5) / math.sqrt(5)  # t_{0.975,4} s / sqrt(n), s^2 = 2.5
-    assert interval.mean == 3.0
-    assert interval.low == pytest.approx(3.0 - half, rel=1e-3)
-    assert interval.high == pytest.approx(3.0 + half, rel=1e-3)
-    assert mean_ci([2.0]) == (2.0, None, None)
-    assert mean_ci([4.0, 4.0, 4.0]) == (4.0, 4.0, 4.0)
+def test_bootstrap_interval_matches_the_enumerated_bootstrap() -> None:
+    values = [0.0004, 0.0006, 0.0009, 0.0011, 0.0141]  # 5^5 = 3125 resamples
+    mean, low, high = bootstrap_mean_ci(values)
+    exact_low, exact_high = _exact_bootstrap_quantiles(values, 0.95)
+    assert mean == pytest.approx(0.00342)
+    assert low == pytest.approx(exact_low, abs=1e-4)
+    assert high == pytest.approx(exact_high, abs=1e-4)
+    assert bootstrap_mean_ci(values) == (mean, low, high)  # fixed seed: the same every time
+    assert bootstrap_mean_ci([2.0]) == (2.0, None, None)
+    assert bootstrap_mean_ci([4.0, 4.0, 4.0]) == (4.0, 4.0, 4.0)
+    with pytest.raises(LolgpsError, match="mean of no values"):
+        bootstrap_mean_ci([])
+
+
+def test_bootstrap_interval_of_small_distances_stays_non_negative() -> None:
+    """Small positive distances with one miss: m +- t s/sqrt(n) reaches below zero
+    ([-0.0040, 0.0108] here), the bootstrap interval stays within the values' range."""
+    values = [0.0004, 0.0006, 0.0009, 0.0011, 0.0141]
+    half = 2.7764 * statistics.stdev(values) / math.sqrt(len(values))  # t_{0.975, 4}
+    assert statistics.fmean(values) - half < 0.0
+    _, low, high = bootstrap_mean_ci(values)
+    assert low is not None and high is not None
+    assert min(values) <= low < statistics.fmean(values) < high <= max(values)
+
+
+def test_bootstrap_interval_of_many_values_is_the_normal_interval() -> None:
+    """For n = 400 the mean is close to normal: m +- 1.96 s/sqrt(n) (central limit theorem)."""
+    values = torch.randn(400, generator=torch.Generator().manual_seed(3)).add(5.0).tolist()
+    mean, low, high = bootstrap_mean_ci(values)
+    half = 1.96 * statistics.stdev(values) / math.sqrt(400)
+    assert low == pytest.approx(mean - half, abs=0.1 * half)
+    assert high == pytest.approx(mean + half, abs=0.1 * half)
 
 
 def test_wilson_interval() -> None:
@@ -145,7 +172,8 @@ def test_aggregate_per_group() -> None:
     assert [r["n"] for r in rows] == [2, 3]
     assert rows[0]["final_distance"]["mean"] == pytest.approx(0.02)
     assert rows[0]["total_cost"]["mean"] == 15.0
-    assert rows[0]["total_cost"]["high"] - 15.0 == pytest.approx(12.7062 * 5.0, rel=1e-3)
+    # two values: the bootstrap means are 10, 15 and 20 with probabilities 1/4, 1/2, 1/4
+    assert (rows[0]["total_cost"]["low"], rows[0]["total_cost"]["high"]) == (10.0, 20.0)
     assert rows[1]["final_distance"]["low"] == pytest.approx(0.2)
     assert rows[1]["success_rate"]["mean"] == pytest.approx(1 / 3)
 

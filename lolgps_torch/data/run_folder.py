@@ -19,6 +19,7 @@ which config.json keeps for display.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -53,18 +54,31 @@ def fsync_path(path: Path) -> None:
         os.close(fd)
 
 
+def write_error(path: str | Path, error: OSError) -> LolgpsError:
+    """The :class:`LolgpsError` for ``error`` while writing ``path``: "disk full while
+    writing <path>" for ENOSPC (and EDQUOT), "cannot write <path>" otherwise."""
+    if error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return LolgpsError(f"disk full while writing {path}: {os.strerror(error.errno)}")
+    text = str(error.strerror or error).strip()
+    return LolgpsError(f"cannot write {path}: {text.splitlines()[0] if text else 'OSError'}")
+
+
 def atomic_write(path: str | Path, write: Callable[[Path], object]) -> None:
     """Write ``path`` through a temporary sibling, fsync it and ``os.replace`` it into place,
     so a reader (or a resumed run) never sees a partial file. ``write`` gets the temporary
-    path. The project's only way of replacing a file it has written before."""
+    path. The project's only way of replacing a file it has written before. An OSError (a
+    full disk) is a :class:`LolgpsError` naming ``path``; the temporary file is removed and
+    the previous ``path`` kept."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial")
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         write(tmp)
         fsync_path(tmp)
         os.replace(tmp, path)
         fsync_path(path.parent)
+    except OSError as error:
+        raise write_error(path, error) from error
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -322,6 +336,9 @@ class RunFolder:
     def append_metrics(self, record: dict[str, Any]) -> None:
         """One line of ``metrics.jsonl`` (appended and flushed; a torn last line is harmless,
         nothing reads the metrics back to resume)."""
-        self.path.mkdir(parents=True, exist_ok=True)
-        with open(self.metrics_path, "a") as fh:
-            fh.write(json.dumps(record) + "\n")
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            with open(self.metrics_path, "a") as fh:
+                fh.write(json.dumps(record) + "\n")
+        except OSError as error:
+            raise write_error(self.metrics_path, error) from error

@@ -12,6 +12,8 @@ import statistics
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from lolgps_torch.errors import LolgpsError
 
 
@@ -28,40 +30,38 @@ def normal_quantile(p: float) -> float:
     return statistics.NormalDist().inv_cdf(p)
 
 
-def t_quantile(p: float, dof: int) -> float:
-    """Student-t quantile ``t_{p, nu}`` for ``p > 1/2``.
-
-    Closed form for ``nu = 1`` (``tan(pi (p - 1/2))``) and ``nu = 2``
-    (``a sqrt(2 / (1 - a^2))``, ``a = 2p - 1``); for ``nu >= 3`` the Cornish-Fisher expansion
-    of Abramowitz & Stegun 26.7.5, ``t = z + g1/nu + g2/nu^2 + g3/nu^3 + g4/nu^4`` with
-    ``z = z_p`` (relative error below 2e-3 at ``p = 0.975``, falling as ``nu`` grows).
-    """
-    if dof < 1 or not 0.5 < p < 1.0:
-        raise LolgpsError(f"t quantile needs dof >= 1 and 1/2 < p < 1, got dof {dof}, p {p}")
-    if dof == 1:
-        return math.tan(math.pi * (p - 0.5))
-    if dof == 2:
-        a = 2.0 * p - 1.0
-        return a * math.sqrt(2.0 / (1.0 - a * a))
-    z = normal_quantile(p)
-    g1 = (z**3 + z) / 4.0
-    g2 = (5 * z**5 + 16 * z**3 + 3 * z) / 96.0
-    g3 = (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / 384.0
-    g4 = (79 * z**9 + 776 * z**7 + 1482 * z**5 - 1920 * z**3 - 945 * z) / 92160.0
-    return z + g1 / dof + g2 / dof**2 + g3 / dof**3 + g4 / dof**4
+BOOTSTRAP_RESAMPLES = 10_000
+BOOTSTRAP_SEED = 0
 
 
-def mean_ci(values: Sequence[float], confidence: float = 0.95) -> Interval:
-    """Mean with the t interval ``m +- t_{(1+c)/2, n-1} s / sqrt(n)``, ``s`` the sample standard
-    deviation (``n - 1`` in the denominator). The interval is None for ``n = 1``."""
+def bootstrap_mean_ci(
+    values: Sequence[float],
+    confidence: float = 0.95,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+) -> Interval:
+    """Mean with the percentile bootstrap interval (Efron & Tibshirani 1993, ch. 13): the
+    ``(1 - c)/2`` and ``(1 + c)/2`` quantiles of the means of ``resamples`` samples of size
+    ``n`` drawn with replacement from ``values``, with a fixed ``seed`` so a result reads the
+    same every time. Every resampled mean lies within ``[min, max]`` of the values, so the
+    interval respects their support: non-negative for distances, unlike ``m +- t s/sqrt(n)``,
+    which goes below zero for a few small distances and one large one. The interval is None
+    for ``n = 1``."""
     n = len(values)
     if n == 0:
         raise LolgpsError("mean of no values")
-    mean = statistics.fmean(values)
+    if resamples < 1 or not 0.0 < confidence < 1.0:
+        raise LolgpsError(
+            f"bootstrap needs resamples >= 1 and 0 < confidence < 1, got {resamples}, {confidence}"
+        )
+    sample = np.asarray(values, dtype=np.float64)
+    mean = float(sample.mean())
     if n == 1:
         return Interval(mean, None, None)
-    half = t_quantile((1.0 + confidence) / 2.0, n - 1) * statistics.stdev(values) / math.sqrt(n)
-    return Interval(mean, mean - half, mean + half)
+    rows = np.random.default_rng(seed).integers(0, n, size=(resamples, n))
+    means = sample[rows].mean(axis=1)  # [resamples]
+    low, high = np.quantile(means, [(1.0 - confidence) / 2.0, (1.0 + confidence) / 2.0])
+    return Interval(mean, float(low), float(high))
 
 
 def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> Interval:
@@ -85,16 +85,16 @@ def aggregate(
     confidence: float = 0.95,
 ) -> list[dict[str, Any]]:
     """Per group ``g`` (one stage's results, each argument indexed ``[g][position]``): ``n``, the
-    mean final distance and mean total cost with their t intervals (:func:`mean_ci`) and the
-    success rate with its Wilson interval (:func:`wilson_interval`), each as
-    ``{"mean", "low", "high"}``."""
+    mean final distance and mean total cost with their bootstrap intervals
+    (:func:`bootstrap_mean_ci`) and the success rate with its Wilson interval
+    (:func:`wilson_interval`), each as ``{"mean", "low", "high"}``."""
     rows = []
     for distance, cost, ok in zip(final_distance, total_cost, success, strict=True):
         rows.append(
             {
                 "n": len(distance),
-                "final_distance": mean_ci(distance, confidence)._asdict(),
-                "total_cost": mean_ci(cost, confidence)._asdict(),
+                "final_distance": bootstrap_mean_ci(distance, confidence)._asdict(),
+                "total_cost": bootstrap_mean_ci(cost, confidence)._asdict(),
                 "success_rate": wilson_interval(sum(map(bool, ok)), len(ok), confidence)._asdict(),
             }
         )
