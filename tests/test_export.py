@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import multiprocessing
 import os
@@ -27,6 +28,7 @@ from lolgps_torch.data import (
 )
 from lolgps_torch.data.run_folder import RunFolder, portable_urdf, task_json
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.progress import progress
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout
@@ -394,3 +396,18 @@ def test_killed_export_leaves_nothing_at_the_output(
     assert partial.exists() and not out.exists()
     export(big, out)  # the next export replaces the stale temporary
     assert out.exists() and not partial.exists()
+
+
+@pytest.mark.parametrize("tty", [True, False])
+def test_progress_bar_only_on_a_terminal(tty: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    class Stream(io.StringIO):
+        def isatty(self) -> bool:
+            return tty
+
+    stream = Stream()
+    monkeypatch.setattr(sys, "stderr", stream)
+    items = [1, 2, 3]
+    wrapped = progress(items, len(items), "demo")
+    assert list(wrapped) == items
+    assert (wrapped is items) == (not tty)
+    assert ("demo" in stream.getvalue()) == tty
