@@ -64,8 +64,8 @@ class ConditionSummary:
     :param distill_loss: the S-step's final loss (None without an S-step).
     :param rollouts: rollouts drawn at the condition, including those that chose where local
         learning starts.
-    :param start: where local learning started: hold (the hold controller) or known (p_pre of
-        the global policy, which already succeeded there).
+    :param start: hold: local learning from the hold controller; known: the global policy
+        already succeeded there, so its own rollouts were rehearsed instead (no local learning).
     :param failure: why local learning stopped early on a numerical failure (None: it did
         not); the condition's D_g then holds the successes before it.
     """

@@ -156,7 +156,6 @@ def iterate(
     linearize: Linearizer | None,
     anchor_to_pre: bool,
     where: tuple[int, int, float],
-    samples: Trajectories | None = None,
 ) -> tuple[Trajectories, LinearGaussian | None, IterationRecord]:
     """One iteration of the trajectory-centric loop, shared by the stream, batch GPS and the
     single-condition learner: sample ``p_act``, fit the dynamics, linearise the global policy
@@ -164,11 +163,10 @@ def iterate(
     against p_pre (``anchor_to_pre``) or against the previous p_cur.
 
     :param where: (condition, iteration, alpha of p_act) for the record.
-    :param samples: rollouts of ``p_act`` drawn already (then none are drawn here).
     :returns: the samples, the new p_pre (None without ``linearize``) and the iteration's record.
     """
     t0 = time.perf_counter()
-    samples = learner.sample(p_act) if samples is None else samples
+    samples = learner.sample(p_act)
     t1 = time.perf_counter()
     fit = learner.fit(p_act, samples)
     p_pre = linearize(samples.x) if linearize is not None else None

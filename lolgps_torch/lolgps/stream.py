@@ -112,14 +112,15 @@ class StreamConfig:
         return min(1.0, alpha + self.alpha_step) if self.alpha_schedule == "dynamic" else alpha
 
 
-class Start(NamedTuple):
-    """How local learning starts at a new condition (p_cur is set by
-    :meth:`StreamLearner.start`): the first iteration's samples when they were drawn already,
-    where p_cur came from, and the rollouts spent choosing."""
+class Outcome(NamedTuple):
+    """What local learning (or rehearsal) at one condition produced: its successes, the
+    final controllers with the iteration count, the rollouts drawn, and a numerical failure
+    that ended it early (None: none)."""
 
-    samples: Trajectories | None
-    source: Literal["hold", "known"]
-    extra_rollouts: int
+    found: Successes
+    final: Labels
+    rollouts: int
+    failure: str | None
 
 
 class Successes:
@@ -154,39 +155,21 @@ class StreamLearner:
         )
 
     def learn_condition(self, index: int, offset: tuple[float, float]) -> ConditionSummary:
-        """Algorithm 2's inner loop at one condition; returns its summary entry."""
+        """One condition of Algorithm 2: local learning (or, where the policy already succeeds,
+        its rehearsal), D_g and the S-step with replay; returns its summary entry."""
         cfg, seed = self.config, condition_seed(self.config, index)
         learner = LocalLearner(self.task, offset, cfg.local, seed=seed)
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
-        p_pre: LinearGaussian | None = None
-        alpha, found, iterations, failure = cfg.alpha, Successes(), 0, None
-        start = self.start(learner, linearize) if cfg.transfer == "policy" else None
-        phases = cfg.success_phases
-        if start and start.source == "known":
-            phases = min(phases, cfg.transfer_phases)
-        rollouts = start.extra_rollouts if start else 0
-        try:
-            for i in range(cfg.max_iterations):
-                iterations, p_cur = i + 1, learner.p_cur
-                p_act = p_cur if p_pre is None else mix(p_pre, p_cur, alpha)  # eq. 6
-                used = alpha if p_pre is not None else 0.0
-                drawn = start.samples if start and i == 0 else None
-                samples, p_pre, record = iterate(
-                    learner, p_act, linearize, cfg.cstep_anchor == "pre", (index, i, used), drawn
-                )
-                self.log(record)
-                rollouts += samples.N
-                found.add(samples, Labels(p_cur, p_pre, i))
-                alpha = cfg.next_alpha(alpha)
-                if len(found.kept) >= phases:
-                    break
-        except NumericalError as error:  # reported in the summary; the stream goes on
-            failure = f"iteration {iterations - 1}: {error}"
+        known = linearize is not None and cfg.transfer == "policy" and self.knows(offset)
+        if known and linearize is not None:
+            outcome = self.rehearse(learner, linearize, index)
+        else:
+            outcome = self.learn_locally(learner, linearize, index)
         # D_g is labelled here: by the final p_cur, unless its own rollout misses
-        local = float("inf") if failure else noiseless_distance(self.task, learner.p_cur, offset)
-        final = Labels(learner.p_cur, p_pre, iterations)
-        labels = label_source(final, local < self.threshold, found.latest)
-        data = label(self.task, found.kept, labels)
+        failure, final = outcome.failure, outcome.final
+        local = float("inf") if failure else noiseless_distance(self.task, final.p_cur, offset)
+        labels = label_source(final, local < self.threshold, outcome.found.latest)
+        data = label(self.task, outcome.found.kept, labels)
         t0 = time.perf_counter()
         losses = self.distill(self.policy, [Labelled(offset, data, labels)], seed)  # eq. 8
         rows = int(data.x.shape[0]) * self.task.T
@@ -195,8 +178,8 @@ class StreamLearner:
         entry = ConditionSummary(
             condition=index,
             offset=list(offset),
-            iterations=iterations,
-            first_success_iteration=found.first,
+            iterations=final.iteration,
+            first_success_iteration=outcome.found.first,
             successful_samples=int(data.x.shape[0]),
             local_final_distance=local,
             local_success=local < self.threshold,
@@ -205,32 +188,69 @@ class StreamLearner:
             policy_success_after=after < self.threshold,
             distill_loss=losses[-1] if losses else None,
             failure=failure,
-            rollouts=rollouts,
-            start="hold" if start is None else start.source,
+            rollouts=outcome.rollouts,
+            start="known" if known else "hold",
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
         self.folder.write_entry(index, entry.to_json())
-        self.replay.append_condition(index, offset, data, iterations, labels.p_cur, labels.p_pre)
+        self.replay.append_condition(
+            index, offset, data, final.iteration, labels.p_cur, labels.p_pre
+        )
         return entry
 
-    def start(self, learner: LocalLearner, linearize: Linearizer | None) -> Start | None:
-        """Forward transfer: where local learning starts at a new condition.
+    def learn_locally(
+        self, learner: LocalLearner, linearize: Linearizer | None, index: int
+    ) -> Outcome:
+        """Algorithm 2's inner loop: iterations of sample, fit, p_pre and C-step until
+        ``success_phases`` iterations had successful samples, or the limit. A numerical
+        failure ends the loop and is reported; the stream goes on."""
+        cfg = self.config
+        p_pre: LinearGaussian | None = None
+        alpha, found, iterations, failure = cfg.alpha, Successes(), 0, None
+        try:
+            for i in range(cfg.max_iterations):
+                iterations, p_cur = i + 1, learner.p_cur
+                p_act = p_cur if p_pre is None else mix(p_pre, p_cur, alpha)  # eq. 6
+                used = alpha if p_pre is not None else 0.0
+                samples, p_pre, record = iterate(  # fit, p_pre, C-step (eq. 7)
+                    learner, p_act, linearize, cfg.cstep_anchor == "pre", (index, i, used)
+                )
+                self.log(record)
+                found.add(samples, Labels(p_cur, p_pre, i))
+                alpha = cfg.next_alpha(alpha)
+                if len(found.kept) >= cfg.success_phases:
+                    break
+        except NumericalError as error:
+            failure = f"iteration {iterations - 1}: {error}"
+        rollouts = iterations * cfg.local.samples + (1 if self._probed(linearize) else 0)
+        return Outcome(found, Labels(learner.p_cur, p_pre, iterations), rollouts, failure)
 
-        The global policy is tried there first with one noiseless rollout. Where it succeeds,
-        the policy already knows the condition: N rollouts with its own noise are the first
-        iteration's samples, p_cur starts at p_pre fitted around them, and D_g needs only
-        ``transfer_phases`` iterations with successes. Elsewhere local learning starts from
-        the hold controller as without transfer: starting from p_pre where the policy misses
-        learnt more slowly than the hold controller (docs/RESULTS.md). None without a trained
-        policy (the first condition, and naive learning)."""
-        if linearize is None:
-            return None
-        if policy_distances(self.task, self.policy, [learner.offset])[0] >= self.threshold:
-            return Start(None, "hold", 1)
-        probe = learner.sample_actor(lambda noise: policy_actor(self.policy, noise))
-        learner.p_cur = linearize(probe.x)
-        return Start(probe, "known", 1)
+    def knows(self, offset: tuple[float, float]) -> bool:
+        """Whether the global policy's noiseless rollout already succeeds at ``offset``."""
+        return policy_distances(self.task, self.policy, [offset])[0] < self.threshold
+
+    def rehearse(self, learner: LocalLearner, linearize: Linearizer, index: int) -> Outcome:
+        """Forward transfer at a condition the policy already solves: no local learning.
+        ``transfer_phases`` batches of N rollouts of the policy with its own noise; D_g is
+        their successes, labelled by the policy's linearisation around them (p_pre), which
+        keeps the policy's behaviour here in the replay at the cost of a few rollouts."""
+        found, batches = Successes(), []
+        for i in range(min(self.config.transfer_phases, self.config.success_phases)):
+            t0 = time.perf_counter()
+            samples = learner.sample_actor(lambda noise: policy_actor(self.policy, noise))
+            self.log(rehearsal_record(samples, index, i, time.perf_counter() - t0))
+            batches.append(samples)
+            found.add(samples, Labels(learner.p_cur, None, i))
+        p_pre = linearize(torch.cat([b.x for b in batches]))
+        iterations = len(batches)
+        found.latest = Labels(p_pre, None, iterations) if found.kept else None
+        rollouts = 1 + iterations * self.config.local.samples
+        return Outcome(found, Labels(p_pre, None, iterations), rollouts, None)
+
+    def _probed(self, linearize: Linearizer | None) -> bool:
+        """Whether :meth:`knows` spent a rollout before local learning."""
+        return linearize is not None and self.config.transfer == "policy"
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own
@@ -296,3 +316,25 @@ def policy_distances(
     if not policy.trained:
         return [float("nan")] * len(offsets)
     return task.sample(policy_actor(policy), offsets).final_distance.tolist()
+
+
+def rehearsal_record(
+    samples: Trajectories, condition: int, iteration: int, seconds: float
+) -> IterationRecord:
+    """The metrics record of one rehearsal batch (no fit, no C-step)."""
+    return IterationRecord(
+        condition=condition,
+        iteration=iteration,
+        alpha=1.0,
+        mean_cost=float(samples.cost.sum(1).mean()),
+        mean_distance=float(samples.final_distance.mean()),
+        best_distance=float(samples.final_distance.min()),
+        success_rate=float(samples.success.double().mean()),
+        epsilon=0.0,
+        eta=0.0,
+        kl=0.0,
+        step_mult=0.0,
+        time_sample=seconds,
+        time_fit=0.0,
+        time_cstep=0.0,
+    )
