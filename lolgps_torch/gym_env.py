@@ -45,7 +45,7 @@ from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig, task_config_from_dict
 
-DEFAULT_URDF = str(Path(__file__).resolve().parents[1] / "robots" / "kuka_peg.urdf")
+DEFAULT_URDF = str(Path(__file__).resolve().parent / "robot" / "data" / "kuka_peg.urdf")
 ENV_ID = "lolgps_torch/PegInsertion-v0"
 NORMALIZED_ENV_ID = "lolgps_torch/PegInsertionNormalized-v0"
 # Bullet's default btMultiBody maximum joint velocity (rad/s): PyBullet clamps each joint to it.
