@@ -12,6 +12,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from lolgps_torch.configs import from_dict
 from lolgps_torch.cost.l12 import CostConfig, PegCost
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import ArmSpec, PegConfig, load_arm
@@ -118,15 +119,6 @@ class PegTask:
 
 
 def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:
-    """Inverse of ``dataclasses.asdict`` for :class:`TaskConfig` (as saved in config.json)."""
-    placement = dict(d["placement"])
-    placement["start_offset"] = tuple(placement["start_offset"])
-    placement["q0"] = tuple(placement["q0"]) if placement["q0"] is not None else None
-    return TaskConfig(
-        urdf=d["urdf"],
-        ee_link=d["ee_link"],
-        peg=PegConfig(**d["peg"]),
-        world=WorldConfig(**d["world"]),
-        placement=PlacementConfig(**placement),
-        cost=CostConfig(**d["cost"]),
-    )
+    """Inverse of ``dataclasses.asdict`` for :class:`TaskConfig` (as saved in config.json,
+    where ``urdf_sha256`` records the hash of the run folder's URDF copy beside it)."""
+    return from_dict(TaskConfig, {k: v for k, v in d.items() if k != "urdf_sha256"})

@@ -50,7 +50,11 @@ def main() -> None:
         help=f"seed of the test positions (default {defaults.seed})",
     )
     parser.add_argument(
-        "--scratch", default=None, help="from-scratch run folder, for forward transfer"
+        "--scratch",
+        default=None,
+        help="from-scratch baselines for forward transfer: 'auto' learns every training "
+        "condition alone for 10 iterations in the worker processes (cached in the run's "
+        "scratch.json), or a run folder with the same conditions (e.g. --transfer none)",
     )
     parser.add_argument(
         "--batch-size",

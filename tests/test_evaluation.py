@@ -40,7 +40,6 @@ from lolgps_torch.evaluation.metrics import (
     bootstrap_mean_ci,
     first_training_stage,
     forgetting,
-    forward_transfer,
     mean_defined,
     wilson_interval,
 )
@@ -193,12 +192,6 @@ def test_forgetting_signs_and_training_stage() -> None:
     assert average_final_success(success[-1]) == pytest.approx(1.6 / 3)
 
 
-def test_forward_transfer() -> None:
-    rows = forward_transfer([2, 6, None, 3], [4, 3, 5, None])
-    assert [r["ratio"] for r in rows] == [0.5, 2.0, None, None]
-    assert [r["saved"] for r in rows] == [2, -3, None, None]
-
-
 # -- plot ---------------------------------------------------------------------------------
 
 
@@ -267,9 +260,12 @@ def fabricate_run(folder: Path, method: str = "lolgps") -> None:
                 p.mul_(0.5 + 0.2 * stage["last_condition"])
         save_policy(run.checkpoint_dir(stage["last_condition"]), policy)
     summary = [
-        {"condition": c, "offset": list(o), "iterations": 4, "first_success_iteration": c % 3}
+        {"condition": c, "offset": list(o), "iterations": 3, "rollouts": 15}
         for c, o in enumerate(conditions)
     ]
+    for c in range(len(conditions)):  # success rates 0, 0.5, 1 at every condition
+        for i, rate in enumerate((0.0, 0.5, 1.0)):
+            run.append_metrics({"condition": c, "iteration": i, "success_rate": rate})
     (folder / "summary.json").write_text(json.dumps({"conditions": summary}))
 
 
@@ -294,9 +290,11 @@ def test_evaluation_is_identical_for_one_and_two_workers(
     forgot = one["metrics"]["forgetting"]["final_distance"]["per_area"]
     means = [s["groups"][0]["final_distance"]["mean"] for s in one["stages"]]
     assert forgot == [pytest.approx(means[2] - means[0]), None]
-    assert one["metrics"]["forward_transfer"][1]["iterations"] == 2  # 0-based 1 -> 2 iterations
-    assert one["metrics"]["forward_transfer"][1]["ratio"] == 1.0
-    assert two["metrics"]["forward_transfer"][1]["ratio"] is None  # no scratch run given
+    row = one["metrics"]["forward_transfer"][1]
+    assert row["auc"] == pytest.approx((0.0 + 0.5 + 8 * 1.0) / 10)  # the last rate carries on
+    assert row["scratch_auc"] == row["auc"] and row["forward_transfer"] == 0.0  # itself
+    assert row["rollouts"] == 15 and one["metrics"]["mean_forward_transfer"] == 0.0
+    assert two["metrics"]["forward_transfer"][1]["forward_transfer"] is None  # no baseline
     assert "area 1" in format_table(one)
 
 

@@ -29,9 +29,9 @@ from lolgps_torch.evaluation.metrics import (
     average_final_success,
     first_training_stage,
     forgetting,
-    forward_transfer,
     mean_defined,
 )
+from lolgps_torch.evaluation.transfer import compute_scratch, rates_by_condition, transfer_rows
 from lolgps_torch.evaluation.worker import Job, PolicyState, Position
 
 
@@ -84,36 +84,34 @@ def _position_groups(positions: Sequence[Position]) -> list[dict[str, Any]]:
     ]
 
 
-def _iterations_to_success(folder: RunFolder) -> dict[tuple[float, float], int | None]:
-    """Iterations up to and including the first successful one (``first_success_iteration``
-    is 0-based), keyed by the rounded hole offset."""
-    summary = folder.read_summary()
-    try:
-        table: dict[tuple[float, float], int | None] = {}
-        for entry in summary["conditions"]:
-            key = (round(float(entry["offset"][0]), 9), round(float(entry["offset"][1]), 9))
-            first = entry["first_success_iteration"]
-            table[key] = None if first is None else int(first) + 1
-    except (ValueError, KeyError, TypeError, IndexError) as error:
-        raise LolgpsError(
-            f"corrupt {folder.summary_path}: {type(error).__name__}: {error}"
-        ) from None
-    return table
+def _scratch_from(run: RunFolder, info: RunInfo) -> list[list[float]]:
+    """Per condition of ``info``, the success rates of the condition at the same offset in
+    another run (e.g. one with ``--transfer none``)."""
+    other = run.read_run()
+    rates = rates_by_condition(run.read_metrics())
+    keys = {(round(dx, 9), round(dy, 9)): c for c, (dx, dy) in enumerate(other.conditions)}
+    out = []
+    for dx, dy in info.conditions:
+        c = keys.get((round(dx, 9), round(dy, 9)))
+        if c is None or not rates.get(c):
+            raise LolgpsError(f"{run.path} has no condition at ({dx:+.3f}, {dy:+.3f})")
+        out.append(rates[c])
+    return out
 
 
 def _transfer(
-    folder: RunFolder, info: RunInfo, scratch: str | Path | None
+    folder: RunFolder, info: RunInfo, scratch: str | Path | None, workers: int
 ) -> list[dict[str, Any]] | None:
-    """Forward transfer per condition against the ``scratch`` run (None without a summary)."""
+    """Forward transfer per condition (None before the run finished): against from-scratch
+    learners run here (``scratch="auto"``), another run's conditions, or nothing."""
     if not folder.summary_path.exists():
         return None
-    keys = [(round(dx, 9), round(dy, 9)) for dx, dy in info.conditions]
-    ours = _iterations_to_success(folder)
-    theirs = _iterations_to_success(RunFolder(scratch)) if scratch is not None else {}
-    rows = forward_transfer([ours.get(k) for k in keys], [theirs.get(k) for k in keys])
-    return [
-        {"condition": c, "offset": list(info.conditions[c]), **row} for c, row in enumerate(rows)
-    ]
+    if scratch == "auto":
+        rates: list[list[float]] | None = compute_scratch(folder, info, workers)
+    else:
+        rates = _scratch_from(RunFolder(scratch), info) if scratch is not None else None
+    entries = folder.read_summary()["conditions"]
+    return transfer_rows(info, folder.read_metrics(), entries, rates)
 
 
 def _metrics(
@@ -129,7 +127,9 @@ def _metrics(
         "average_success": [average_final_success(r) for r in rates],
         "average_final_success": average_final_success(rates[-1]),
         "forward_transfer": transfer,
-        "mean_transfer_ratio": mean_defined([r["ratio"] for r in transfer]) if transfer else None,
+        "mean_forward_transfer": (
+            mean_defined([r["forward_transfer"] for r in transfer[1:]]) if transfer else None
+        ),
         "trained_by_stage": None,
         "forgetting": None,
     }
@@ -197,8 +197,9 @@ def evaluate_run(
     :param workers: processes to spread the rollouts over (results do not depend on it).
     :param areas: test areas (default :class:`AreaConfig`); exclusive with ``positions``.
     :param positions: explicit hole offsets ``(dx, dy)`` (m), each its own group.
-    :param scratch: a run folder whose ``summary.json`` gives from-scratch iterations to first
-        success, for forward transfer.
+    :param scratch: the from-scratch baselines for forward transfer: ``"auto"`` learns every
+        condition alone here (cached in the run's ``scratch.json``), or a run folder whose
+        conditions at the same offsets serve (e.g. a ``--transfer none`` run).
     :param batch_size: rollouts per batch (worlds per worker).
     :returns: the dict written to ``eval.json``.
     """
@@ -228,7 +229,9 @@ def evaluate_run(
         "training": {"conditions": [list(c) for c in info.conditions], "stages": info.stages},
         "groups": groups,
         "stages": stages,
-        "metrics": _metrics(stages, evaluated, info, areas, _transfer(folder, info, scratch)),
+        "metrics": _metrics(
+            stages, evaluated, info, areas, _transfer(folder, info, scratch, workers)
+        ),
     }
     write_json(folder.eval_path, evaluation)
     return evaluation

@@ -148,20 +148,3 @@ def average_final_success(final_success_rate: Sequence[float]) -> float:
     if not final_success_rate:
         raise LolgpsError("average success of no groups")
     return statistics.fmean(final_success_rate)
-
-
-def forward_transfer(
-    iterations: Sequence[int | None], scratch: Sequence[int | None]
-) -> list[dict[str, float | int | None]]:
-    """Forward transfer per condition from iterations to first success: the stream's ``n_c``
-    against a from-scratch learner's ``n0_c``. ``ratio = n_c / n0_c`` (below 1: earlier
-    conditions helped) and ``saved = n0_c - n_c`` (iterations saved, positive: helped); None
-    where either count is unavailable (never succeeded, or no from-scratch run)."""
-    rows: list[dict[str, float | int | None]] = []
-    for n, n0 in zip(iterations, scratch, strict=True):
-        ratio: float | None = None
-        saved: int | None = None
-        if n is not None and n0 is not None and n0 > 0:
-            ratio, saved = n / n0, n0 - n
-        rows.append({"iterations": n, "scratch_iterations": n0, "ratio": ratio, "saved": saved})
-    return rows

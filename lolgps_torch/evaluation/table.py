@@ -32,9 +32,17 @@ def format_table(evaluation: dict[str, Any]) -> str:
             cells = ["  -  " if v is None else f"{v:+.3g}" for v in forgot["per_area"]]
             lines.append(f"forgetting of {name} per area (positive: worse): {' '.join(cells)}")
     if metrics["forward_transfer"] is not None:
-        cells = [
-            f"c{row['condition']}: {row['iterations']}/{row['scratch_iterations']}"
-            for row in metrics["forward_transfer"]
-        ]
-        lines.append("iterations to first success (run/scratch): " + ", ".join(cells))
+        lines.append(f"{'condition':>9} {'rollouts':>8} {'AUC':>6} {'scratch':>7} {'FT':>6}")
+        for row in metrics["forward_transfer"]:
+            cells = [_cell(row[k], ".3f") for k in ("auc", "scratch_auc", "forward_transfer")]
+            lines.append(
+                f"{row['condition']:>9} {_cell(row['rollouts'], 'd'):>8} "
+                f"{cells[0]:>6} {cells[1]:>7} {cells[2]:>6}"
+            )
+        mean = metrics["mean_forward_transfer"]
+        lines.append(f"mean forward transfer (conditions 1..): {_cell(mean, '.3f')}")
     return "\n".join(lines)
+
+
+def _cell(value: float | int | None, fmt: str) -> str:
+    return "-" if value is None else f"{value:{fmt}}"
