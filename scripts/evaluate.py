@@ -23,6 +23,7 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig
 from lolgps_torch.evaluation.evaluate import evaluate_run
 from lolgps_torch.evaluation.plot import plot_fig4
+from lolgps_torch.evaluation.square import SquareConfig
 from lolgps_torch.evaluation.table import format_table
 
 
@@ -34,6 +35,12 @@ def main() -> None:
     parser.add_argument("--run", required=True, help="run folder (with config.json, checkpoints/)")
     parser.add_argument("--workers", type=int, default=2, help="rollout processes (default 2)")
     parser.add_argument("--positions", default=None, help="JSON list of [dx, dy] to evaluate")
+    parser.add_argument(
+        "--square",
+        action="store_true",
+        help="the square stream's test set: 200 positions uniform in the 0.20 m square, from "
+        "--area-seed, none of them a training position (instead of the areas)",
+    )
     parser.add_argument(
         "--areas", type=int, default=None, help=f"number of test areas (default {defaults.n_areas})"
     )
@@ -74,8 +81,11 @@ def main() -> None:
         raise LolgpsError(
             "--positions replaces the test areas: drop --areas/--per-area/--area-seed"
         )
+    if args.square and (args.positions is not None or args.areas or args.per_area):
+        raise LolgpsError("--square replaces the test areas and --positions")
     positions = read_offsets(args.positions, "--positions") if args.positions else None
-    areas = replace(defaults, **chosen) if positions is None else None
+    square = (SquareConfig(), args.area_seed or 0) if args.square else None
+    areas = replace(defaults, **chosen) if positions is None and square is None else None
     evaluation = evaluate_run(
         args.run,
         args.workers,
@@ -83,6 +93,7 @@ def main() -> None:
         positions=positions,
         scratch=args.scratch,
         batch_size=args.batch_size,
+        square=square,
     )
     folder = RunFolder(args.run)
     plot_fig4(evaluation, folder.figure_path)

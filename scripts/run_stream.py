@@ -42,6 +42,7 @@ from lolgps_torch.data.run_folder import (
 )
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
+from lolgps_torch.evaluation.square import SquareConfig, square_stream
 from lolgps_torch.lolgps import METHODS, StreamConfig, make_learner, method_config
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -64,10 +65,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     add_task_arguments(parser, default_urdf="robots/kuka_peg.urdf")
     parser.add_argument(
+        "--stream",
+        choices=("paper", "square"),
+        default="paper",
+        help="paper: train0 (4 corners), train1 (+2 in area 2), train2 (+2 in area 4); square: "
+        "--count positions uniform in a 0.20 m square about the nominal hole, from --seed "
+        "(default %(default)s)",
+    )
+    parser.add_argument(
+        "--count",
+        type=int,
+        default=SquareConfig().count,
+        help="positions of the square stream (default %(default)s)",
+    )
+    parser.add_argument(
         "--conditions",
         default=None,
-        help="JSON file with a list of planar hole offsets [[dx, dy], ...] (m); "
-        "default: the paper's train0/train1/train2 stream",
+        help="JSON file with a list of planar hole offsets [[dx, dy], ...] (m), instead of "
+        "--stream",
     )
     parser.add_argument(
         "--method",
@@ -129,11 +144,13 @@ def plan_run(args: argparse.Namespace) -> Plan:
     device = check_device(args.device)
     stream = method_config(args.method, STREAM_FLAGS.build(args))
     task = task_config(args)
-    if args.conditions is None:
-        conditions, stages = default_training_stream(AreaConfig(), args.seed)
-    else:
+    if args.conditions is not None:
         conditions = read_offsets(args.conditions, "--conditions")
         stages = [{"name": "stream", "last_condition": len(conditions) - 1}]
+    elif args.stream == "square":
+        conditions, stages = square_stream(SquareConfig(count=args.count), args.seed)
+    else:
+        conditions, stages = default_training_stream(AreaConfig(), args.seed)
     folder = RunFolder(args.out or os.path.join("runs", f"{args.method}-seed{args.seed}"))
     urdf_text = portable_urdf(args.urdf)
     config = as_stored(

@@ -44,6 +44,7 @@ from lolgps_torch.evaluation.metrics import (
     wilson_interval,
 )
 from lolgps_torch.evaluation.plot import plot_fig4
+from lolgps_torch.evaluation.square import SquareConfig
 from lolgps_torch.evaluation.table import format_table
 from lolgps_torch.evaluation.worker import Job, PolicyState, RolloutSetup, run_worker
 from lolgps_torch.policy.net import GaussianPolicy
@@ -422,3 +423,18 @@ def test_spawned_workers_do_not_rerun_the_main_script(monkeypatch: pytest.Monkey
         hidden = multiprocessing.spawn.get_preparation_data("worker")
     assert "init_main_from_path" not in hidden and "init_main_from_name" not in hidden
     assert main.__file__ == str(SCRIPT) and main.__spec__ is None
+
+
+def test_square_test_set_is_one_group_of_held_out_positions(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    fabricate_run(run)
+    square = SquareConfig(test_positions=4)
+    evaluation = evaluate_run(run, workers=1, batch_size=4, square=(square, 3))
+    assert evaluation["mode"] == "square" and len(evaluation["groups"]) == 1
+    positions = evaluation["groups"][0]["positions"]
+    assert len(positions) == 4 and all(abs(v) <= 0.1 for p in positions for v in p)
+    training = [tuple(c) for c in evaluation["training"]["conditions"]]
+    assert not {tuple(p) for p in positions} & set(training)
+    assert len(evaluation["stages"][-1]["per_position"]["final_distance"][0]) == 4
+    plot_fig4(evaluation, tmp_path / "fig.png")
+    assert (tmp_path / "fig.png").stat().st_size > 0

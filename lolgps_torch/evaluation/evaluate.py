@@ -31,6 +31,7 @@ from lolgps_torch.evaluation.metrics import (
     forgetting,
     mean_defined,
 )
+from lolgps_torch.evaluation.square import SquareConfig, square_test_positions
 from lolgps_torch.evaluation.transfer import compute_scratch, rates_by_condition, transfer_rows
 from lolgps_torch.evaluation.worker import Job, PolicyState, Position
 
@@ -65,6 +66,20 @@ def _area_groups(areas: AreaConfig) -> list[dict[str, Any]]:
             "positions": sampled[k].tolist(),
         }
         for k in range(areas.n_areas)
+    ]
+
+
+def _square_group(square: SquareConfig, area_seed: int, info: RunInfo) -> list[dict[str, Any]]:
+    """One group: the square's held-out test positions (never a training one)."""
+    positions = square_test_positions(square, area_seed, info.conditions)
+    return [
+        {
+            "label": f"square {square.side:g} m",
+            "centre": [0.0, 0.0],
+            "centre_distance": 0.0,
+            "radius": square.side / 2,
+            "positions": [list(p) for p in positions],
+        }
     ]
 
 
@@ -191,6 +206,7 @@ def evaluate_run(
     positions: Sequence[Position] | None = None,
     scratch: str | Path | None = None,
     batch_size: int = 10,
+    square: tuple[SquareConfig, int] | None = None,
 ) -> dict[str, Any]:
     """Evaluate every stage's checkpoint of ``run_dir`` and write its ``eval.json``.
 
@@ -201,18 +217,23 @@ def evaluate_run(
         condition alone here (cached in the run's ``scratch.json``), or a run folder whose
         conditions at the same offsets serve (e.g. a ``--transfer none`` run).
     :param batch_size: rollouts per batch (worlds per worker).
+    :param square: the 2-D stream's test set instead of areas or positions: its geometry and
+        the seed of its positions.
     :returns: the dict written to ``eval.json``.
     """
     if areas is not None and positions is not None:
         raise LolgpsError("evaluate either test areas or explicit positions, not both")
     if batch_size < 1:
         raise LolgpsError(f"batch size must be positive, got {batch_size}")
-    if positions is None and areas is None:
+    if positions is None and areas is None and square is None:
         areas = AreaConfig()
     folder = RunFolder(run_dir)
     info = folder.read_run()
     policies = stage_policies(folder, info)
-    groups = _area_groups(areas) if areas is not None else _position_groups(positions or [])
+    if square is not None:
+        groups = _square_group(*square, info)
+    else:
+        groups = _area_groups(areas) if areas is not None else _position_groups(positions or [])
     flat: list[Position] = [(p[0], p[1]) for g in groups for p in g["positions"]]
     batches = [tuple(flat[i : i + batch_size]) for i in range(0, len(flat), batch_size)]
     jobs = [Job(i, batch) for i in range(len(policies)) for batch in batches]
@@ -223,7 +244,7 @@ def evaluate_run(
     evaluation = {
         "method": info.method,
         "seed": info.seed,
-        "mode": "positions" if positions is not None else "areas",
+        "mode": "square" if square else "positions" if positions is not None else "areas",
         "area_config": asdict(areas) if areas is not None else None,
         "success_threshold": info.task.world.success_threshold,
         "training": {"conditions": [list(c) for c in info.conditions], "stages": info.stages},

@@ -36,7 +36,10 @@ from typing import NoReturn
 from lolgps_torch.errors import LolgpsError
 
 METHODS = ("lolgps", "naive", "batch")
-STREAMS = ("paper",)  # "paper": run_stream's default stream, no flag; others pass --stream X
+STREAMS = (
+    "paper",
+    "square",
+)  # "paper": run_stream's default stream, no flag; others pass --stream X
 DEFAULT_URDF = "robots/kuka_peg.urdf"
 STREAM_FLAGS = ("--urdf", "--method", "--seed", "--out", "--resume", "--conditions", "--stream")
 EVALUATE_FLAGS = ("--run", "--workers")
