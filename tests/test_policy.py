@@ -16,7 +16,15 @@ from lolgps_torch.policy import (
     linearize_policy,
     optimal_variance,
 )
-from lolgps_torch.policy.sstep import Adam, FlatMLP, cosine_rate, row_quadratics
+from lolgps_torch.policy.sstep import (
+    Adam,
+    FlatMLP,
+    _row_constants,
+    _row_quadratics,
+    cosine_rates,
+    loss_rows,
+    minibatch_loss,
+)
 from lolgps_torch.types import DistillBatch
 
 F64 = torch.float64
@@ -192,19 +200,19 @@ def test_distill_rejects_an_empty_batch() -> None:
         distill(GaussianPolicy(3, 2), DistillBatch(*(field[:0] for field in batch)))
 
 
-def test_row_quadratics_complete_the_square() -> None:
+def test_minibatch_loss_and_gradient_match_autograd() -> None:
     batch = random_batch(M=50, dX=4, dU=3, seed=12)
     g = torch.Generator().manual_seed(13)
     policy = GaussianPolicy(4, 3)
     policy.set_whitening(batch.x)
     policy.set_variance(torch.rand(3, dtype=F64, generator=g) + 0.2)
-    rows = row_quadratics(policy, batch, pre_weight=0.3)
-    mean = torch.randn(50, 3, dtype=F64, generator=g)
-    diff = (mean - rows.mean).unsqueeze(-1)
-    per_row = rows.constant + 0.5 * (diff.mT @ rows.prec @ diff).flatten()
-    expected = reference_loss(mean, policy.covariance(), batch, pre_weight=0.3)
-    assert torch.allclose(per_row.mean(), expected, rtol=1e-12)
-    assert torch.equal(rows.x, (batch.x - policy.x_mean) / policy.x_std)
+    mean = torch.randn(50, 3, dtype=F64, generator=g).requires_grad_(True)
+    loss, grad = minibatch_loss(mean.detach(), loss_rows(policy, batch, 0.3), pre_weight=0.3)
+    expected = kl_loss(mean, policy.covariance(), batch, pre_weight=0.3)
+    (expected_grad,) = torch.autograd.grad(expected, mean)
+    assert torch.equal(loss, expected.detach())
+    assert torch.equal(grad, expected_grad)
+    assert torch.allclose(loss, reference_loss(mean, policy.covariance(), batch, 0.3), rtol=1e-12)
 
 
 def test_flat_mlp_backward_matches_autograd() -> None:
@@ -217,9 +225,9 @@ def test_flat_mlp_backward_matches_autograd() -> None:
         activations = net.forward(x)
         net.backward(activations, grad_mean)
     out = policy.net(x)
-    assert torch.allclose(activations[-1], out, rtol=0, atol=1e-14)
+    assert torch.equal(activations[-1], out)
     expected = torch.autograd.grad(out, list(policy.net.parameters()), grad_mean)
-    assert torch.allclose(net.grad, torch.cat([e.flatten() for e in expected]), atol=1e-13)
+    assert torch.equal(net.grad, torch.cat([e.flatten() for e in expected]))
     with pytest.raises(LolgpsError, match="Linear, ReLU"):
         FlatMLP(torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.Tanh(), torch.nn.Linear(2, 1)))
 
@@ -233,9 +241,9 @@ def test_adam_and_rate_match_torch() -> None:
         optimiser, T_max=config.steps, eta_min=0.05 * config.learning_rate
     )
     adam = Adam(theta)
-    for step in range(config.steps):
+    for step, own_rate in enumerate(cosine_rates(config)):
         rate = optimiser.param_groups[0]["lr"]
-        assert cosine_rate(step, config) == pytest.approx(rate, rel=1e-14)
+        assert own_rate == rate
         grad = torch.randn(30, dtype=F64, generator=torch.Generator().manual_seed(step))
         reference.grad = grad.clone()
         optimiser.step()
@@ -245,8 +253,9 @@ def test_adam_and_rate_match_torch() -> None:
 
 
 def test_distill_matches_autograd_adam_on_kl_loss() -> None:
-    """The hand-written S-step against the plain one: autograd on :func:`kl_loss`,
-    ``torch.optim.Adam`` and ``CosineAnnealingLR`` on the same minibatches."""
+    """The hand-written S-step against the plain one, bitwise: autograd through the loss of
+    :func:`kl_loss` (per-row constants computed once), ``torch.optim.Adam`` and
+    ``CosineAnnealingLR`` on the same minibatches."""
     batch = random_batch(M=300, dX=4, dU=3, seed=16)
     config = PolicyConfig(hidden_sizes=(16, 16), steps=50, batch_size=32, pre_weight=0.3)
     policy, reference = GaussianPolicy(4, 3, config), GaussianPolicy(4, 3, config)
@@ -258,17 +267,18 @@ def test_distill_matches_autograd_adam_on_kl_loss() -> None:
         optimiser, T_max=config.steps, eta_min=0.05 * config.learning_rate
     )
     draws = torch.randint(300, (config.steps, 32), generator=torch.Generator().manual_seed(17))
+    constants = _row_constants(reference.covariance(), batch, 0.3)  # [M], once, as distill does
     expected = []
     for rows in draws:
         minibatch = DistillBatch(*(field[rows] for field in batch))
-        loss = kl_loss(reference(minibatch.x), reference.covariance(), minibatch, 0.3)
+        loss = (_row_quadratics(reference(minibatch.x), minibatch, 0.3) + constants[rows]).mean()
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
         schedule.step()
         expected.append(loss.item())
-    assert history == pytest.approx(expected, rel=1e-12)
-    assert torch.allclose(policy(batch.x), reference(batch.x), rtol=0, atol=1e-12)
+    assert history == expected
+    assert torch.equal(policy(batch.x), reference(batch.x))
 
 
 def test_whitening_floors_the_std() -> None:
