@@ -1,0 +1,219 @@
+"""Nothing lost to a kill or a damaged file: a CI-sized stream SIGKILLed at moments read from
+what the run writes (an iteration record, an S-step, the replay's temporary file), then
+resumed, ends with the uninterrupted run's summary and policy; a truncated replay,
+checkpoint or config.json met by ``--resume``, ``evaluate.py`` or ``export_dataset.py`` is one
+``error:`` line naming the file, exit status 2."""
+
+from __future__ import annotations
+
+import json
+import os
+import runpy
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.checkpoint import load_policy
+
+ROOT = Path(__file__).resolve().parents[1]
+STREAM = [sys.executable, str(ROOT / "scripts" / "run_stream.py")]
+URDF = str(ROOT / "robots" / "kuka_peg.urdf")
+SMALL = ["--max-iterations", "7", "--success-phases", "1", "--distill-steps", "200"]
+CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
+Moment = Callable[[Path], bool]
+
+
+def _command(tmp: Path, out: Path) -> list[str]:
+    conditions = tmp / "conditions.json"
+    conditions.write_text(json.dumps(CONDITIONS))
+    return [*STREAM, "--urdf", URDF, "--conditions", str(conditions), *SMALL, "--out", str(out)]
+
+
+def _records(out: Path) -> list[dict[str, Any]]:
+    """metrics.jsonl so far; a line being written is left out."""
+    try:
+        lines = (out / "metrics.jsonl").read_text().splitlines()
+    except FileNotFoundError:
+        return []
+    records = []
+    for line in lines:
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            break
+    return records
+
+
+def _distilled(records: list[dict[str, Any]], condition: int) -> bool:
+    return any(r.get("event") == "distilled" and r["condition"] == condition for r in records)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An uninterrupted run of the CI-sized stream."""
+    tmp = tmp_path_factory.mktemp("reference")
+    proc = subprocess.run(
+        _command(tmp, tmp / "run"), capture_output=True, text=True, timeout=900, cwd=tmp
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return tmp / "run"
+
+
+def _kill_at(command: list[str], out: Path, moment: Moment, poll: float) -> None:
+    """Start the stream and SIGKILL it as soon as ``moment(out)`` holds, polled every
+    ``poll`` seconds; fail if the run ends first."""
+    proc = subprocess.Popen(
+        command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=out.parent
+    )
+    deadline = time.monotonic() + 900
+    while not moment(out):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            _, stderr = proc.communicate()
+            pytest.fail(f"the run ended before the moment to kill it: {stderr[-2000:]}")
+        time.sleep(poll)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+
+
+def _iteration_logged(condition: int, iteration: int) -> Moment:
+    return lambda out: any(
+        r.get("condition") == condition and r.get("iteration") == iteration and "event" not in r
+        for r in _records(out)
+    )
+
+
+def _replay_partial(out: Path) -> bool:
+    return (out / "replay.h5.partial").exists()
+
+
+def _group_bytes(path: Path, group: str) -> dict[str, bytes]:
+    with h5py.File(path, "r") as f:
+        return {name: np.asarray(ds).tobytes() for name, ds in f[group].items()}
+
+
+def test_killed_three_times_the_resumed_run_ends_as_the_uninterrupted_one(
+    reference: Path, tmp_path: Path
+) -> None:
+    """One run killed (a) right after its second iteration record, before any condition was
+    complete; (b) during the last condition's S-step, after its last iteration record and
+    before its "distilled" record; (c) while the replay is being appended, as soon as
+    ``replay.h5.partial`` appears (the append takes 0.1-0.3 s; polled every ms). After each
+    kill the files already complete read back unchanged; resumed, it ends with the
+    uninterrupted run's summary.json, replay and final policy."""
+    out = tmp_path / "run"
+    command = _command(tmp_path, out)
+    replay = out / "replay.h5"
+
+    _kill_at(command, out, _iteration_logged(0, 1), poll=0.005)  # (a)
+    assert not replay.exists() and not (out / "checkpoints").exists()
+
+    expected = _records(reference)
+    end = next(i for i, r in enumerate(expected) if _distilled([r], 1))
+    last_iteration = expected[end - 1]  # the last condition's last iteration record
+    assert last_iteration.get("condition") == 1 and "iteration" in last_iteration
+    in_s_step = _iteration_logged(1, last_iteration["iteration"])
+    _kill_at([*command, "--resume"], out, in_s_step, poll=0.005)  # (b)
+    assert not _distilled(_records(out), 1), "killed after the S-step, not during it"
+    assert ReplayBuffer(replay).conditions() == [0]
+    first = _group_bytes(replay, "condition_000")
+    assert load_policy(out / "checkpoints" / "after_condition_000").trained
+
+    _kill_at([*command, "--resume"], out, _replay_partial, poll=0.001)  # (c)
+    assert (out / "replay.h5.partial").exists(), "killed after the append, not during it"
+    assert ReplayBuffer(replay).conditions() == [0]
+    assert _group_bytes(replay, "condition_000") == first
+
+    resumed = subprocess.run(
+        [*command, "--resume"], capture_output=True, text=True, timeout=900, cwd=tmp_path
+    )
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert not (out / "replay.h5.partial").exists()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary == json.loads((reference / "summary.json").read_text())
+    for group in ("condition_000", "condition_001"):
+        assert _group_bytes(replay, group) == _group_bytes(reference / "replay.h5", group)
+    final = out / "checkpoints" / "after_condition_001"
+    ours, theirs = (
+        load_policy(p).state_dict() for p in (final, reference / final.relative_to(out))
+    )
+    assert ours.keys() == theirs.keys()
+    assert all(torch.equal(ours[key], theirs[key]) for key in ours)
+
+
+# -- damaged files ---------------------------------------------------------------------------
+
+
+def _main(script: str, args: list[str], capfd: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    """Run ``scripts/<script>`` as ``python scripts/<script> ARGS`` does, in this process (a
+    process per case would cost seconds of imports each): its exit status and what it wrote
+    to the stderr file descriptor."""
+    capfd.readouterr()
+    argv = sys.argv
+    sys.argv = [script, *args]
+    try:
+        runpy.run_path(str(ROOT / "scripts" / script), run_name="__main__")
+        code = 0
+    except SystemExit as exit_:
+        code = int(exit_.code or 0)
+    finally:
+        sys.argv = argv
+    return code, capfd.readouterr().err
+
+
+def _truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+POLICY = "checkpoints/after_condition_001/policy.pt"
+DESCRIPTION = "checkpoints/after_condition_001/policy.json"
+CASES = [
+    ("run_stream.py", "replay.h5"),
+    ("run_stream.py", POLICY),  # policy.json: the same load_policy as evaluate.py's below
+    ("run_stream.py", "config.json"),
+    ("evaluate.py", POLICY),
+    ("evaluate.py", DESCRIPTION),
+    ("evaluate.py", "config.json"),
+    ("export_dataset.py", "replay.h5"),
+    ("export_dataset.py", "config.json"),
+]
+
+
+@pytest.mark.parametrize(("script", "damaged"), CASES)
+def test_a_truncated_file_is_one_error_naming_it(
+    script: str,
+    damaged: str,
+    reference: Path,
+    tmp_path: Path,
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    _truncate(run / damaged)
+    args = {
+        "run_stream.py": _command(tmp_path, run)[2:] + ["--resume"],
+        "evaluate.py": ["--run", str(run), "--positions", str(tmp_path / "positions.json")],
+        "export_dataset.py": ["--run", str(run), "--out", str(tmp_path / "export.h5")],
+    }[script]
+    (tmp_path / "positions.json").write_text("[[0.0, 0.0]]")
+    code, stderr = _main(
+        script, [*args, "--workers", "1"] if script == "evaluate.py" else args, capfd
+    )
+    assert code == 2
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), stderr
+    assert str(run / damaged) in lines[0]
+    assert not (tmp_path / "export.h5").exists() and not (run / "eval.json").exists()
