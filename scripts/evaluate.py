@@ -61,7 +61,7 @@ def main() -> None:
         default=None,
         help="from-scratch baselines for forward transfer: 'auto' learns every training "
         "condition alone for 10 iterations in the worker processes (cached in the run's "
-        "scratch.json), or a run folder with the same conditions (e.g. --transfer none)",
+        "scratch.json), or a run folder with the same conditions (e.g. a naive run)",
     )
     parser.add_argument(
         "--batch-size",

@@ -62,10 +62,7 @@ class ConditionSummary:
     :param policy_final_distance_after: the global policy's noiseless final distance (m)
         right after the condition's S-step; ``..._end`` after the whole stream (set last).
     :param distill_loss: the S-step's final loss (None without an S-step).
-    :param rollouts: rollouts drawn at the condition, including those that chose where local
-        learning starts.
-    :param start: hold: local learning from the hold controller; known: the global policy
-        already succeeded there, so its own rollouts were rehearsed instead (no local learning).
+    :param rollouts: rollouts drawn at the condition.
     :param failure: why local learning stopped early on a numerical failure (None: it did
         not); the condition's D_g then holds the successes before it.
     """
@@ -83,7 +80,6 @@ class ConditionSummary:
     distill_loss: float | None
     failure: str | None = None
     rollouts: int = 0
-    start: str = "hold"
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

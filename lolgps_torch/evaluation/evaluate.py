@@ -101,7 +101,7 @@ def _position_groups(positions: Sequence[Position]) -> list[dict[str, Any]]:
 
 def _scratch_from(run: RunFolder, info: RunInfo) -> list[list[float]]:
     """Per condition of ``info``, the success rates of the condition at the same offset in
-    another run (e.g. one with ``--transfer none``)."""
+    another run (e.g. a naive one)."""
     other = run.read_run()
     rates = rates_by_condition(run.read_metrics())
     keys = {(round(dx, 9), round(dy, 9)): c for c, (dx, dy) in enumerate(other.conditions)}
@@ -215,7 +215,7 @@ def evaluate_run(
     :param positions: explicit hole offsets ``(dx, dy)`` (m), each its own group.
     :param scratch: the from-scratch baselines for forward transfer: ``"auto"`` learns every
         condition alone here (cached in the run's ``scratch.json``), or a run folder whose
-        conditions at the same offsets serve (e.g. a ``--transfer none`` run).
+        conditions at the same offsets serve (e.g. a naive run).
     :param batch_size: rollouts per batch (worlds per worker).
     :param square: the 2-D stream's test set instead of areas or positions: its geometry and
         the seed of its positions.

@@ -47,7 +47,7 @@ class BatchLearner:
     """All conditions learned together, with an S-step after every iteration.
 
     MDGPS samples p_cur itself and anchors the C-step to the policy, so ``alpha``,
-    ``alpha_schedule``, ``transfer`` and ``cstep_anchor`` are fixed by it
+    ``alpha_schedule`` and ``cstep_anchor`` are fixed by it
     (:func:`~lolgps_torch.lolgps.methods.method_config` records them); every other
     :class:`StreamConfig` field applies, and ``replay`` must stay on (every condition is in
     every S-step).

@@ -26,7 +26,7 @@ from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.errors import check_fields
-from lolgps_torch.sim.rollout import Actor, linear_gaussian_actor
+from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.trajopt import (
     CStepConfig,
@@ -111,16 +111,12 @@ class LocalLearner:
 
     def sample(self, p_act: LinearGaussian) -> Trajectories:
         """N rollouts of ``p_act`` at this condition."""
-        return self.sample_actor(lambda noise: linear_gaussian_actor(p_act, noise))
-
-    def sample_actor(self, actor: Callable[[Tensor], Actor]) -> Trajectories:
-        """N rollouts at this condition of the controller ``actor(noise)`` builds from this
-        learner's smoothed exploration noise ``[N, T, dU]``."""
         T, dU = self.task.T, self.task.layout.dU
         noise = smoothed_noise(
             self.config.samples, T, dU, self.config.noise_smoothing, self.generator
         ).to(self.task.device)
-        return self.task.sample(actor(noise), [self.offset] * self.config.samples)
+        actor = linear_gaussian_actor(p_act, noise)
+        return self.task.sample(actor, [self.offset] * self.config.samples)
 
     def fit(self, p_act: LinearGaussian, samples: Trajectories) -> Fit:
         """Dynamics and cost expansion around the new samples; adapts the step size."""

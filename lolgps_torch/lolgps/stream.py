@@ -42,7 +42,6 @@ from lolgps_torch.types import LinearGaussian, Trajectories
 
 AlphaSchedule = Literal["constant", "dynamic"]
 CStepAnchor = Literal["previous", "pre"]
-Transfer = Literal["policy", "none"]
 Log = Callable[[IterationRecord | DistillRecord], None]
 
 
@@ -61,10 +60,6 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
-    :param transfer: policy: a new condition starts from what the global policy already does
-        there (:meth:`StreamLearner.start`); none: from the hold controller (the paper).
-    :param transfer_phases: iterations with successful samples needed in D_g where the
-        policy's own noiseless rollout already succeeds (at most ``success_phases``).
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -78,8 +73,6 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
-    transfer: Transfer = "policy"
-    transfer_phases: int = 3
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -88,7 +81,6 @@ class StreamConfig:
         options = (
             ("alpha_schedule", AlphaSchedule),
             ("cstep_anchor", CStepAnchor),
-            ("transfer", Transfer),
         )
         for name, kind in options:
             if getattr(self, name) not in get_args(kind):
@@ -102,7 +94,6 @@ class StreamConfig:
                 "augment": self.augment >= 0,
                 "augment_scale": 0.0 <= self.augment_scale < float("inf"),
                 "max_iterations": self.max_iterations >= 1,
-                "transfer_phases": self.transfer_phases >= 1,
                 "seed": self.seed >= 0,
             },
         )
@@ -155,16 +146,12 @@ class StreamLearner:
         )
 
     def learn_condition(self, index: int, offset: tuple[float, float]) -> ConditionSummary:
-        """One condition of Algorithm 2: local learning (or, where the policy already succeeds,
-        its rehearsal), D_g and the S-step with replay; returns its summary entry."""
+        """One condition of Algorithm 2: local learning, D_g and the S-step with replay;
+        returns its summary entry."""
         cfg, seed = self.config, condition_seed(self.config, index)
         learner = LocalLearner(self.task, offset, cfg.local, seed=seed)
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
-        known = linearize is not None and cfg.transfer == "policy" and self.knows(offset)
-        if known and linearize is not None:
-            outcome = self.rehearse(learner, linearize, index)
-        else:
-            outcome = self.learn_locally(learner, linearize, index)
+        outcome = self.learn_locally(learner, linearize, index)
         # D_g is labelled here: by the final p_cur, unless its own rollout misses
         failure, final = outcome.failure, outcome.final
         local = float("inf") if failure else noiseless_distance(self.task, final.p_cur, offset)
@@ -189,7 +176,6 @@ class StreamLearner:
             distill_loss=losses[-1] if losses else None,
             failure=failure,
             rollouts=outcome.rollouts,
-            start="known" if known else "hold",
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
@@ -223,34 +209,8 @@ class StreamLearner:
                     break
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"
-        rollouts = iterations * cfg.local.samples + (1 if self._probed(linearize) else 0)
+        rollouts = iterations * cfg.local.samples
         return Outcome(found, Labels(learner.p_cur, p_pre, iterations), rollouts, failure)
-
-    def knows(self, offset: tuple[float, float]) -> bool:
-        """Whether the global policy's noiseless rollout already succeeds at ``offset``."""
-        return policy_distances(self.task, self.policy, [offset])[0] < self.threshold
-
-    def rehearse(self, learner: LocalLearner, linearize: Linearizer, index: int) -> Outcome:
-        """Forward transfer at a condition the policy already solves: no local learning.
-        ``transfer_phases`` batches of N rollouts of the policy with its own noise; D_g is
-        their successes, labelled by the policy's linearisation around them (p_pre), which
-        keeps the policy's behaviour here in the replay at the cost of a few rollouts."""
-        found, batches = Successes(), []
-        for i in range(min(self.config.transfer_phases, self.config.success_phases)):
-            t0 = time.perf_counter()
-            samples = learner.sample_actor(lambda noise: policy_actor(self.policy, noise))
-            self.log(rehearsal_record(samples, index, i, time.perf_counter() - t0))
-            batches.append(samples)
-            found.add(samples, Labels(learner.p_cur, None, i))
-        p_pre = linearize(torch.cat([b.x for b in batches]))
-        iterations = len(batches)
-        found.latest = Labels(p_pre, None, iterations) if found.kept else None
-        rollouts = 1 + iterations * self.config.local.samples
-        return Outcome(found, Labels(p_pre, None, iterations), rollouts, None)
-
-    def _probed(self, linearize: Linearizer | None) -> bool:
-        """Whether :meth:`knows` spent a rollout before local learning."""
-        return linearize is not None and self.config.transfer == "policy"
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own
@@ -316,25 +276,3 @@ def policy_distances(
     if not policy.trained:
         return [float("nan")] * len(offsets)
     return task.sample(policy_actor(policy), offsets).final_distance.tolist()
-
-
-def rehearsal_record(
-    samples: Trajectories, condition: int, iteration: int, seconds: float
-) -> IterationRecord:
-    """The metrics record of one rehearsal batch (no fit, no C-step)."""
-    return IterationRecord(
-        condition=condition,
-        iteration=iteration,
-        alpha=1.0,
-        mean_cost=float(samples.cost.sum(1).mean()),
-        mean_distance=float(samples.final_distance.mean()),
-        best_distance=float(samples.final_distance.min()),
-        success_rate=float(samples.success.double().mean()),
-        epsilon=0.0,
-        eta=0.0,
-        kl=0.0,
-        step_mult=0.0,
-        time_sample=seconds,
-        time_fit=0.0,
-        time_cstep=0.0,
-    )
