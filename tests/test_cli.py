@@ -123,7 +123,11 @@ def _run_stream(
     [
         (["--device", "banana"], "[[0, 0]]", "error: --device banana: "),
         ([], "[[NaN, 0]]", "error: --conditions "),
-        (["--max-iterations", "0"], "[[0, 0]]", "error: StreamConfig.max_iterations = 0: out of range"),
+        (
+            ["--max-iterations", "0"],
+            "[[0, 0]]",
+            "error: StreamConfig.max_iterations = 0: out of range",
+        ),
         ([], "[[5.0, 0.0]]", "error: hole offset (+5.000, +0.000) m is out of the arm's reach"),
         (["--resume"], "[[0, 0]]", "error: --resume: "),
     ],
