@@ -22,22 +22,14 @@ import h5py
 import numpy as np
 import pytest
 import torch
+from conftest import ci_stream_command
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
 
 ROOT = Path(__file__).resolve().parents[1]
-STREAM = [sys.executable, str(ROOT / "scripts" / "run_stream.py")]
-URDF = str(ROOT / "robots" / "kuka_peg.urdf")
-SMALL = ["--max-iterations", "7", "--success-phases", "1", "--distill-steps", "200"]
-CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
 Moment = Callable[[Path], bool]
-
-
-def _command(tmp: Path, out: Path) -> list[str]:
-    conditions = tmp / "conditions.json"
-    conditions.write_text(json.dumps(CONDITIONS))
-    return [*STREAM, "--urdf", URDF, "--conditions", str(conditions), *SMALL, "--out", str(out)]
+_command = ci_stream_command
 
 
 def _records(out: Path) -> list[dict[str, Any]]:
@@ -60,14 +52,9 @@ def _distilled(records: list[dict[str, Any]], condition: int) -> bool:
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def reference(ci_stream: Path) -> Path:
     """An uninterrupted run of the CI-sized stream."""
-    tmp = tmp_path_factory.mktemp("reference")
-    proc = subprocess.run(
-        _command(tmp, tmp / "run"), capture_output=True, text=True, timeout=900, cwd=tmp
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return tmp / "run"
+    return ci_stream / "run"
 
 
 def _kill_at(command: list[str], out: Path, moment: Moment, poll: float) -> None:
