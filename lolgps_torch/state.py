@@ -1,4 +1,4 @@
-"""The state vector x of ALGORITHM.md section 1, described once by names and slices.
+"""The state vector x of docs/ALGORITHM.md section 1, described once by names and slices.
 
 For an arm with n actuated joints (dX = 2n + 12, dU = n)::
 

@@ -4,7 +4,7 @@
                                [--per-area P] [--area-seed S] [--scratch DIR]
 
 For each training stage, the policy checkpointed after its last condition runs without noise
-at every test position (default: 7 areas of 50 positions, ALGORITHM.md section 9). Writes
+at every test position (default: 7 areas of 50 positions, docs/ALGORITHM.md section 9). Writes
 DIR/eval.json (per stage and area: mean final distance, mean total cost and success rate with
 95% CIs; forgetting, average final success, forward transfer) and DIR/fig4.png, and prints a
 table. ``--positions FILE`` (a JSON list of [dx, dy] in metres) evaluates those positions

@@ -24,7 +24,7 @@ def ci_stream_command(tmp: Path, out: Path) -> list[str]:
             "--out", str(out)]  # fmt: skip
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def ci_stream(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One uninterrupted run of the CI-sized stream for the whole suite: ``<tmp>/run``."""
     tmp = tmp_path_factory.mktemp("stream")

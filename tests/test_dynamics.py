@@ -89,7 +89,7 @@ def test_regression_without_prior_is_least_squares() -> None:
 
 
 def test_regression_with_prior_follows_the_map_formula() -> None:
-    """Against the posterior of ALGORITHM.md section 4 written out step by step."""
+    """Against the posterior of docs/ALGORITHM.md section 4 written out step by step."""
     N, T, dA, dB = 4, 3, 5, 3
     g = torch.Generator().manual_seed(7)
     X = torch.randn(N, T, dA, generator=g, dtype=DTYPE)

@@ -1,5 +1,5 @@
 """Building linear-Gaussian controllers ``p(u_t | x_t) = N(K_t x_t + k_t, cov_t)``
-(ALGORITHM.md section 3)."""
+(docs/ALGORITHM.md section 3)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """State-action marginals of a linear-Gaussian controller under linear-Gaussian dynamics, and
-the quantities computed from them: the controller KL and the expected cost (ALGORITHM.md 3, 5).
+the quantities computed from them: the controller KL and the expected cost (docs/ALGORITHM.md 3, 5).
 
 Layout: time-first, with any leading batch dimensions ``...`` carried by the controller (for
 example a batch of dual-variable candidates); dynamics and costs are unbatched ``[T, ...]``.

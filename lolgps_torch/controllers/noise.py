@@ -1,4 +1,4 @@
-"""Temporally smoothed exploration noise for linear-Gaussian controllers (ALGORITHM.md section 3).
+"""Temporally smoothed exploration noise for linear-Gaussian controllers (docs/ALGORITHM.md section 3).
 
     eps = W z,   z ~ N(0, I) along time,   W_ts = g(t - s) / ||g(t - .)||,
     g(d) = exp(-d^2 / 2 s^2)

@@ -1,4 +1,4 @@
-"""The peg-insertion cost (paper eq. 9, ALGORITHM.md section 2) and its quadratic expansion.
+"""The peg-insertion cost (paper eq. 9, docs/ALGORITHM.md section 2) and its quadratic expansion.
 
     l(x_t, u_t) = 1/2 sum_j wu_j u_j^2  +  m_t * l12(z_t),
     l12(z)      = 1/2 l2 |z|^2 + l1 sqrt(gamma + |z|^2),

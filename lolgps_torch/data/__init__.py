@@ -1,4 +1,4 @@
-"""Data on disk: the HDF5 replay of successful trajectories (ALGORITHM.md section 7), and its
+"""Data on disk: the HDF5 replay of successful trajectories (docs/ALGORITHM.md section 7), and its
 export as a documented HDF5 or Minari dataset (datasets/README.md)."""
 
 from lolgps_torch.data.dataset import ExportedTrajectories, ExportReport

@@ -1,5 +1,5 @@
 """HDF5 replay of the successful trajectories ``D_g`` of each condition, with their distillation
-targets (ALGORITHM.md section 7), so later S-steps remember earlier conditions.
+targets (docs/ALGORITHM.md section 7), so later S-steps remember earlier conditions.
 
 File layout: root attributes ``format`` and ``version``; one group per condition,
 ``condition_000``, ``condition_001``, ..., each holding (M samples, T steps)

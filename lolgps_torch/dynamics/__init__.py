@@ -1,4 +1,4 @@
-"""Dynamics fitting (ALGORITHM.md section 4): GMM, normal-inverse-Wishart prior, per-step fit."""
+"""Dynamics fitting (docs/ALGORITHM.md section 4): GMM, normal-inverse-Wishart prior, per-step fit."""
 
 from lolgps_torch.dynamics.fit import (
     DynamicsConfig,

@@ -65,7 +65,7 @@ def gaussian_regression(
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Dynamics fitting (ALGORITHM.md section 4); GMM and prior defaults from the original GPS.
+    """Dynamics fitting (docs/ALGORITHM.md section 4); GMM and prior defaults from the original GPS.
 
     :param use_prior: regularise the per-step fit with the GMM prior (off: plain regression).
     :param max_trajectories: trajectories of this condition kept for the GMM.

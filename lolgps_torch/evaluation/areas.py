@@ -1,4 +1,4 @@
-"""Test areas and the default training stream of the experiment (ALGORITHM.md section 9, Fig. 3).
+"""Test areas and the default training stream of the experiment (docs/ALGORITHM.md section 9, Fig. 3).
 
 Test area ``k = 0 .. K-1`` is a disc of radius ``r`` centred ``c_k = k * spacing * e_axis`` from
 the nominal hole position, ``e_axis`` the unit vector of the table's lateral axis. Positions are
@@ -23,7 +23,7 @@ Stage = dict[str, Any]  # {"name": "train0", "last_condition": 3}
 @dataclass(frozen=True)
 class AreaConfig:
     """Geometry of the test areas (paper Fig. 3; the paper gives no numbers, these are
-    ALGORITHM.md section 9's defaults).
+    docs/ALGORITHM.md section 9's defaults).
 
     :param n_areas: number of test areas K.
     :param spacing: distance (m) between consecutive area centres; area 0 is centred on the
@@ -112,7 +112,7 @@ def default_training_stream(
     extra_areas: tuple[int, ...] = (2, 4),
     per_extra_area: int = 2,
 ) -> tuple[list[tuple[float, float]], list[Stage]]:
-    """The paper's stream (ALGORITHM.md section 9): ``train0`` = the 4 corners
+    """The paper's stream (docs/ALGORITHM.md section 9): ``train0`` = the 4 corners
     ``(+-w, +-w)`` of a square about the nominal hole; ``train<i>`` (i >= 1) adds
     ``per_extra_area`` positions drawn uniformly (seeded by ``seed``) in test area
     ``extra_areas[i-1]``'s disc.

@@ -1,4 +1,4 @@
-"""The Fig. 4 evaluation of a run folder (ALGORITHM.md section 9).
+"""The Fig. 4 evaluation of a run folder (docs/ALGORITHM.md section 9).
 
 For each training stage, the global policy checkpointed after the stage's last condition runs
 without noise (its mean action ``u_t = mu_theta(x_t)``) at every test position; per position

@@ -1,4 +1,4 @@
-"""The trajectory-centric learner of one condition (ALGORITHM.md sections 3-5).
+"""The trajectory-centric learner of one condition (docs/ALGORITHM.md sections 3-5).
 
 Each iteration: sample N rollouts of the acting controller, fit time-varying linear
 dynamics with the GMM prior, expand the cost around the samples, and take the C-step

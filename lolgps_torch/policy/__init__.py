@@ -1,4 +1,4 @@
-"""The global policy (ALGORITHM.md sections 6-7): the net, its linearisation ``p_pre`` and the
+"""The global policy (docs/ALGORITHM.md sections 6-7): the net, its linearisation ``p_pre`` and the
 S-step."""
 
 from lolgps_torch.policy.actor import policy_actor

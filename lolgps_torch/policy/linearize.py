@@ -1,5 +1,5 @@
 """Linearising the global policy around a condition's samples: ``p_pre`` (paper Algorithm 2,
-line 14; ALGORITHM.md section 6).
+line 14; docs/ALGORITHM.md section 6).
 
 Layout: samples are sample-first (``x: [N, T, dX]``); the result is time-first.
 """

@@ -1,4 +1,4 @@
-"""The global policy ``pi_theta(u | x) = N(mu_theta(x), diag(sigma^2))`` (ALGORITHM.md section 7).
+"""The global policy ``pi_theta(u | x) = N(mu_theta(x), diag(sigma^2))`` (docs/ALGORITHM.md section 7).
 
 Layout: states ``[..., dX]`` map to action means ``[..., dU]``; any leading dimensions (samples,
 time) pass through. Parameters and buffers are float64.
@@ -18,7 +18,7 @@ from lolgps_torch.errors import LolgpsError, check_fields
 
 @dataclass(frozen=True)
 class PolicyConfig:
-    """Global policy and S-step (paper section 4; ALGORITHM.md sections 7 and 10).
+    """Global policy and S-step (paper section 4; docs/ALGORITHM.md sections 7 and 10).
 
     :param hidden_sizes: widths of the ReLU hidden layers (paper: 5 layers, 42 units each, i.e.
         input -> 4 x 42 ReLU -> dU).

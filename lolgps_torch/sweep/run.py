@@ -45,7 +45,7 @@ def import_ray() -> ModuleType:
 
 
 @contextlib.contextmanager
-def ray_session(ray: ModuleType, address: str | None, num_cpus: int) -> Iterator[int]:
+def ray_connection(ray: ModuleType, address: str | None, num_cpus: int) -> Iterator[int]:
     """Connect to Ray for the block and yield its CPU count: join the cluster at ``address``,
     or start a local instance with ``num_cpus`` CPUs; an instance already connected is used
     as it is (and left running).
@@ -90,13 +90,13 @@ def format_duration(seconds: float | None) -> str:
 
 class Progress:
     """The sweep's progress line: cells done, running and failed, and an ETA from the rate at
-    which this session has finished cells. On a terminal it is one line rewritten in place;
+    which this sweep has finished cells. On a terminal it is one line rewritten in place;
     otherwise each event prints a line."""
 
     def __init__(self, total: int, done: int, slots: int, stream: IO[str] | None = None) -> None:
         """
         :param total: cells in the grid
-        :param done: cells already finished before this session
+        :param done: cells already finished before this sweep started
         :param slots: cells that can run at once (the cluster's CPUs)
         :param stream: where to write (default stdout)
         """
@@ -109,7 +109,7 @@ class Progress:
         """The status line with ``pending`` cells submitted and not yet ended."""
         running = min(pending, self.slots)
         eta = None
-        if self.ended:  # this session's time per cell so far, counting down between events
+        if self.ended:  # this sweep's time per cell so far, counting down between events
             per_cell = (self.last_end - self.start) / self.ended
             eta = max(0.0, self.start + per_cell * (self.ended + pending) - time.monotonic())
         return (
@@ -253,7 +253,7 @@ def main(argv: Sequence[str], scripts: str | None = None) -> int:
         flush=True,
     )
     if todo:
-        with ray_session(ray, sweep.address, sweep.num_cpus) as slots:
+        with ray_connection(ray, sweep.address, sweep.num_cpus) as slots:
             progress = Progress(len(sweep.cells), len(outcomes), slots)
             try:
                 ended = run_cells(ray, todo, sweep.plan, progress)

@@ -123,7 +123,7 @@ def markdown_table(rows: Sequence[dict[str, Any]], failed: Sequence[Outcome]) ->
     """The aggregate as a markdown table, mean ± sd over seeds, with the failed cells after it.
 
     :param rows: from :func:`aggregate`
-    :param failed: the cells that failed in this session
+    :param failed: the cells that failed in this sweep
     """
     heads = ["method", "arm", "stream", "seeds", *(head for _, head, _ in METRICS)]
     lines = ["| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
@@ -196,7 +196,7 @@ def write_summaries(sweep: Sweep, failed: Sequence[Outcome]) -> list[Path]:
     folder and return their paths.
 
     :param sweep: the sweep
-    :param failed: the cells that failed in this session
+    :param failed: the cells that failed in this sweep
     """
     out = Path(sweep.plan.out)
     rows = aggregate(sweep.cells, out)

@@ -1,4 +1,4 @@
-"""Settings of the C-step (ALGORITHM.md section 5)."""
+"""Settings of the C-step (docs/ALGORITHM.md section 5)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ class CStepConfig:
     :param step_mult_init: initial step multiplier.
     :param step_mult_min: lower bound of the step multiplier.
     :param step_mult_max: upper bound of the step multiplier (about 3 avoids overshooting after
-        a first success, ALGORITHM.md section 11).
+        a first success, docs/ALGORITHM.md section 11).
     :param step_change_min: lower clip of one adaptation's factor on the multiplier.
     :param step_change_max: upper clip of one adaptation's factor on the multiplier.
     :param eta_min: smallest dual variable searched (the constraint is not binding below it).

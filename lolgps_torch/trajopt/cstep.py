@@ -1,4 +1,4 @@
-"""The C-step: KL-constrained trajectory optimisation (paper eq. 7, ALGORITHM.md section 5).
+"""The C-step: KL-constrained trajectory optimisation (paper eq. 7, docs/ALGORITHM.md section 5).
 
     p_cur = argmin_p E_p[sum_t l(x_t, u_t)]   s.t.   KL(p || p_bar) <= epsilon
 

@@ -1,4 +1,4 @@
-"""Backward pass of the KL-constrained LQR (paper eq. 7, ALGORITHM.md section 5).
+"""Backward pass of the KL-constrained LQR (paper eq. 7, docs/ALGORITHM.md section 5).
 
 For a dual variable eta the C-step solves a maximum-entropy LQR on the surrogate cost
 ``C / eta - log p_bar(u | x)``.  With ``P = cov_bar^{-1}`` and ``H = [-K_bar, -k_bar, I]`` the
@@ -13,7 +13,7 @@ eta -> inf returns p_bar).  In homogeneous coordinates one matrix carries Qyy an
     [K_t, k_t] = -Quu^{-1} Qu[x;1],                cov_t = eta Quu^{-1}
     V_t = Q[x;1][x;1] - Q[x;1]u Quu^{-1} Qu[x;1]   (symmetrised)
 
-which is ALGORITHM.md's ``Qyy = Cyy + F^T V F``, ``qy = cy + F^T (v + V f)``, ``V = Qxx + Qxu K``,
+which is docs/ALGORITHM.md's ``Qyy = Cyy + F^T V F``, ``qy = cy + F^T (v + V f)``, ``V = Qxx + Qxu K``,
 ``v = qx + Qxu k`` written in one product.  Candidates eta ``[E]`` are solved as one batch.
 """
 

@@ -1,4 +1,4 @@
-"""KL step size and its adaptation (ALGORITHM.md section 5, as the original MDGPS).
+"""KL step size and its adaptation (docs/ALGORITHM.md section 5, as the original MDGPS).
 
     epsilon   = kl_step * step_mult * T
     pred      = E[cost | p_prev, old model] - E[cost | p_new, old model]   (predicted improvement)
