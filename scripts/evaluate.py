@@ -70,7 +70,26 @@ def main() -> None:
         help="rollouts stepped together per worker (default 10)",
     )
     args = parser.parse_args()
+    areas, positions, square = test_set(args, defaults)
+    evaluation = evaluate_run(
+        args.run,
+        args.workers,
+        areas=areas,
+        positions=positions,
+        scratch=args.scratch,
+        batch_size=args.batch_size,
+        square=square,
+    )
+    folder = RunFolder(args.run)
+    plot_fig4(evaluation, folder.figure_path)
+    print(format_table(evaluation))
+    print(f"wrote {folder.eval_path} and {folder.figure_path}")
 
+
+def test_set(
+    args: argparse.Namespace, defaults: AreaConfig
+) -> tuple[AreaConfig | None, list[tuple[float, float]] | None, tuple[SquareConfig, int] | None]:
+    """The test areas, the explicit positions or the square's test set the flags choose."""
     area_flags = {
         "n_areas": args.areas,
         "positions_per_area": args.per_area,
@@ -86,19 +105,7 @@ def main() -> None:
     positions = read_offsets(args.positions, "--positions") if args.positions else None
     square = (SquareConfig(), args.area_seed or 0) if args.square else None
     areas = replace(defaults, **chosen) if positions is None and square is None else None
-    evaluation = evaluate_run(
-        args.run,
-        args.workers,
-        areas=areas,
-        positions=positions,
-        scratch=args.scratch,
-        batch_size=args.batch_size,
-        square=square,
-    )
-    folder = RunFolder(args.run)
-    plot_fig4(evaluation, folder.figure_path)
-    print(format_table(evaluation))
-    print(f"wrote {folder.eval_path} and {folder.figure_path}")
+    return areas, positions, square
 
 
 if __name__ == "__main__":

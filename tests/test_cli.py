@@ -181,3 +181,55 @@ def test_resume_names_the_fields_that_differ(
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
     assert saved["task"]["urdf"] == "robots/kuka_peg.urdf"
     assert len(saved["task"]["urdf_sha256"]) == 64
+
+
+NUMERIC_FLAGS = [
+    "--alpha", "--alpha-step", "--success-phases", "--augment", "--augment-scale",
+    "--max-iterations", "--samples", "--distill-steps", "--pre-weight", "--seed", "--count",
+    "--friction", "--action-weight", "--descent-height", "--descent-steps", "--peg-length",
+    "--peg-radius",
+]  # fmt: skip
+VALUES = ["nan", "inf", "-inf", "-1", "0", "1e308", "2", "0.5", "x", "", "1e-300"]
+
+
+def test_fuzzed_numeric_flags_are_accepted_or_refused_before_writing(tmp_path: Path) -> None:
+    """Seeded random values of every numeric flag of run_stream.py: each is refused by
+    argparse (exit 2) or by the configs' checks (LolgpsError), or planned, and nothing is
+    written either way; never another exception."""
+    module = runpy.run_path(str(RUN_STREAM), run_name="fuzz")
+    (tmp_path / "conditions.json").write_text("[[0.0, 0.0]]")
+    base = ["--conditions", str(tmp_path / "conditions.json"), "--out", str(tmp_path / "run")]
+    rng = __import__("random").Random(0)
+    outcomes = {"argparse": 0, "refused": 0, "planned": 0}
+    for _ in range(120):
+        flag, value = rng.choice(NUMERIC_FLAGS), rng.choice(VALUES)
+        try:
+            module["plan_run"](module["parse_args"]([*base, flag, value]))
+            outcomes["planned"] += 1
+        except SystemExit as error:
+            assert error.code == 2
+            outcomes["argparse"] += 1
+        except LolgpsError:
+            outcomes["refused"] += 1
+        assert not (tmp_path / "run").exists(), (flag, value)
+    assert all(outcomes.values()), outcomes  # each kind of outcome was exercised
+
+
+def test_fuzzed_conditions_files_are_read_or_refused(tmp_path: Path) -> None:
+    """Seeded random JSON for --conditions: finite [dx, dy] pairs, or one LolgpsError."""
+    rng = __import__("random").Random(1)
+    atoms = ["0.01", "NaN", "Infinity", "-0.02", '"a"', "null", "[]", "{}", "true", "1e400"]
+    path = tmp_path / "conditions.json"
+    for _ in range(200):
+        pairs = [
+            "[" + ", ".join(rng.choice(atoms) for _ in range(rng.randint(0, 3))) + "]"
+            for _ in range(rng.randint(0, 3))
+        ]
+        text = "[" + ", ".join(pairs) + "]"
+        path.write_text(text if rng.random() > 0.1 else text[: rng.randint(0, len(text))])
+        try:
+            offsets = read_offsets(str(path), "--conditions")
+        except LolgpsError:
+            continue
+        assert offsets and all(len(o) == 2 for o in offsets)
+        assert all(abs(v) < float("inf") for o in offsets for v in o), text
