@@ -22,3 +22,33 @@ def progress(iterable: Iterable[Item], total: int | None = None, desc: str = "")
     if not sys.stderr.isatty():
         return iterable
     return tqdm(iterable, total=total, desc=desc, leave=False, dynamic_ncols=True)
+
+
+class Bar:
+    """A tqdm bar on stderr with log lines printed above it on a terminal; elsewhere no bar
+    and the lines printed as they are, one per event.
+
+    :param total: steps to completion. :param desc: the bar's label.
+    """
+
+    def __init__(self, total: int, desc: str = "") -> None:
+        self.bar = (
+            tqdm(total=total, desc=desc, leave=False, dynamic_ncols=True)
+            if sys.stderr.isatty()
+            else None
+        )
+
+    def write(self, line: str) -> None:
+        """One log line on standard output (above the bar)."""
+        if self.bar is None:
+            print(line, flush=True)
+        else:
+            self.bar.write(line, file=sys.stdout)
+
+    def update(self, steps: int = 1) -> None:
+        if self.bar is not None:
+            self.bar.update(steps)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

@@ -44,6 +44,7 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.evaluation.square import SquareConfig, square_stream
 from lolgps_torch.lolgps import METHODS, StreamConfig, make_learner, method_config
+from lolgps_torch.progress import Bar
 from lolgps_torch.task import PegTask, TaskConfig
 
 STREAM_FLAGS = ConfigFlags(
@@ -169,26 +170,24 @@ def plan_run(args: argparse.Namespace) -> Plan:
     return Plan(folder, config, urdf_text, args.method, stream, task, conditions, device)
 
 
-def _print_record(record: IterationRecord | DistillRecord, total: int) -> None:
+def _record_line(record: IterationRecord | DistillRecord, total: int) -> str:
     if isinstance(record, DistillRecord):
-        print(f"S-step took {record.time_distill:.1f}s", flush=True)
-        return
-    print(
+        return f"S-step took {record.time_distill:.1f}s"
+    return (
         f"condition {record.condition + 1}/{total}  iter {record.iteration:2d}  "
         f"cost {record.mean_cost:8.2f}  distance mean {record.mean_distance:.3f} "
         f"best {record.best_distance:.3f}  success {record.success_rate:4.0%}  "
         f"[{record.time_sample:.2f}s sample, {record.time_fit:.2f}s fit, "
-        f"{record.time_cstep:.2f}s C-step]",
-        flush=True,
+        f"{record.time_cstep:.2f}s C-step]"
     )
 
 
-def _print_condition(entry: ConditionSummary, total: int) -> None:
-    print(
+def _condition_line(entry: ConditionSummary, total: int) -> str:
+    failure = f"; failed: {entry.failure}" if entry.failure else ""
+    return (
         f"condition {entry.condition + 1}/{total} done: first success at iteration "
         f"{entry.first_success_iteration}, p_cur distance {entry.local_final_distance:.4f}, "
-        f"global policy distance {entry.policy_final_distance_after:.4f}",
-        flush=True,
+        f"global policy distance {entry.policy_final_distance_after:.4f}{failure}"
     )
 
 
@@ -213,15 +212,23 @@ def _print_table(summary: list[ConditionSummary], folder: RunFolder) -> None:
 
 def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
     """Run the plan's learner in its folder, logging every record to metrics.jsonl and the
-    terminal; write summary.json at the end."""
+    terminal (with a bar over the conditions on a terminal); write summary.json at the end."""
     folder, total = plan.folder, len(plan.conditions)
+    bar = Bar(total, "conditions")
 
     def log(record: IterationRecord | DistillRecord) -> None:
         folder.append_metrics(record.to_json())
-        _print_record(record, total)
+        bar.write(_record_line(record, total))
+
+    def done(entry: ConditionSummary) -> None:
+        bar.write(_condition_line(entry, total))
+        bar.update()
 
     learner = make_learner(plan.method, task, plan.stream, folder, log)
-    summary = learner.run(plan.conditions, lambda entry: _print_condition(entry, total))
+    try:
+        summary = learner.run(plan.conditions, done)
+    finally:
+        bar.close()
     folder.write_summary(
         {
             "method": plan.method,

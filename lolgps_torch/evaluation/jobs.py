@@ -33,6 +33,7 @@ from lolgps_torch.evaluation.worker import (
     next_job,
     run_worker,
 )
+from lolgps_torch.progress import Bar
 from lolgps_torch.task import PegTask, TaskConfig
 
 
@@ -165,12 +166,14 @@ def run_jobs(
         for _ in processes:
             setups.put(_setup(peg, n_worlds, policies))
         found: dict[int, JobResult] = {}
+        bar = Bar(len(jobs), "evaluation")
         while (index := next_job(counter, len(jobs))) is not None:
-            found[index] = _score(peg, jobs[index], roller(jobs[index]))
-            for i, rollouts in _ready(results):
-                found[i] = _score(peg, jobs[i], rollouts)
+            ready = [(index, roller(jobs[index])), *_ready(results)]
+            found.update((i, _score(peg, jobs[i], rollouts)) for i, rollouts in ready)
+            bar.update(len(ready))
         for i, rollouts in _collect(results, set(range(len(jobs))) - set(found), processes):
             found[i] = _score(peg, jobs[i], rollouts)
+        bar.close()
         return [found[i] for i in range(len(jobs))]
     finally:
         for process in processes:
