@@ -7,8 +7,8 @@ import ast
 from pathlib import Path
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("errors", "types", "state", "progress", "layers", "configs"),
-    ("robot", "controllers"),
+    ("errors", "types", "state", "progress", "layers"),
+    ("robot", "controllers", "configs"),
     ("sim", "cost", "dynamics", "trajopt"),
     ("policy",),
     ("task",),

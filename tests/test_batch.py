@@ -65,7 +65,7 @@ def test_mdgps_c_step_is_anchored_to_the_policy_linearisation(
 
 def test_mdgps_fixes_its_sampling_and_anchor_and_needs_the_replay(tmp_path: Path) -> None:
     config = method_config("batch", StreamConfig(alpha=0.5, cstep_anchor="previous"))
-    assert (config.alpha, config.cstep_anchor, config.transfer) == (0.0, "pre", "none")
+    assert (config.alpha, config.alpha_schedule, config.cstep_anchor) == (0.0, "constant", "pre")
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
     with pytest.raises(LolgpsError, match="replay"):
         make_learner("batch", task, StreamConfig(replay=False), RunFolder(tmp_path), print)
