@@ -7,7 +7,7 @@ import ast
 from pathlib import Path
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("errors", "types", "state", "progress", "layers"),
+    ("errors", "types", "state", "progress", "layers", "cluster"),
     ("robot", "controllers", "configs"),
     ("sim", "cost", "dynamics", "trajopt"),
     ("policy",),

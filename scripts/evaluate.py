@@ -2,6 +2,7 @@
 
     python scripts/evaluate.py --run DIR [--workers 2] [--positions FILE] [--areas N]
                                [--per-area P] [--area-seed S] [--scratch DIR]
+                               [--ray [ADDRESS]]
 
 For each training stage, the policy checkpointed after its last condition runs without noise
 at every test position (default: 7 areas of 50 positions, docs/ALGORITHM.md section 9). Writes
@@ -9,7 +10,8 @@ DIR/eval.json (per stage and area: mean final distance, mean total cost and succ
 95% CIs; forgetting, average final success, forward transfer) and DIR/fig4.png, and prints a
 table. ``--positions FILE`` (a JSON list of [dx, dy] in metres) evaluates those positions
 instead of the areas; ``--scratch DIR`` takes from-scratch iterations to first success from
-another run's summary.json for forward transfer.
+another run's summary.json for forward transfer. ``--ray`` runs the rollouts on Ray actors (a
+local instance, or the cluster at ADDRESS) instead of processes, with the same results.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import argparse
 from dataclasses import replace
 
 from lolgps_torch.cli import read_offsets, run
+from lolgps_torch.cluster import import_ray
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig
@@ -69,7 +72,20 @@ def main() -> None:
         default=10,
         help="rollouts stepped together per worker (default 10)",
     )
+    parser.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        default=None,
+        metavar="ADDRESS",
+        help="roll out on Ray actors instead of processes: alone, a local instance of --workers "
+        "CPUs; with an address (e.g. auto), that cluster (needs pip install -e '.[ray]')",
+    )
     args = parser.parse_args()
+    if args.workers < 1:
+        raise LolgpsError(f"--workers {args.workers}: must be at least 1")
+    if args.ray is not None:
+        import_ray()
     areas, positions, square = test_set(args, defaults)
     evaluation = evaluate_run(
         args.run,
@@ -79,6 +95,7 @@ def main() -> None:
         scratch=args.scratch,
         batch_size=args.batch_size,
         square=square,
+        ray=args.ray,
     )
     folder = RunFolder(args.run)
     plot_fig4(evaluation, folder.figure_path)

@@ -24,6 +24,7 @@ from lolgps_torch.policy.sstep import (
     cosine_rates,
     loss_rows,
     minibatch_loss,
+    set_statistics,
 )
 from lolgps_torch.types import DistillBatch
 
@@ -260,8 +261,8 @@ def test_distill_matches_autograd_adam_on_kl_loss() -> None:
     config = PolicyConfig(hidden_sizes=(16, 16), steps=50, batch_size=32, pre_weight=0.3)
     policy, reference = GaussianPolicy(4, 3, config), GaussianPolicy(4, 3, config)
     history = distill(policy, batch, generator=torch.Generator().manual_seed(17))
-    reference.set_whitening(batch.x)
-    reference.set_variance(optimal_variance(batch, config.pre_weight))
+    set_statistics(reference, batch, config.pre_weight)
+    assert not torch.equal(reference.u_scale, torch.ones(3, dtype=F64))
     optimiser = torch.optim.Adam(reference.net.parameters(), lr=config.learning_rate)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
         optimiser, T_max=config.steps, eta_min=0.05 * config.learning_rate
@@ -279,6 +280,26 @@ def test_distill_matches_autograd_adam_on_kl_loss() -> None:
         expected.append(loss.item())
     assert history == expected
     assert torch.equal(policy(batch.x), reference(batch.x))
+
+
+def test_distill_is_the_same_in_any_torque_units() -> None:
+    """Multiplying one joint's teacher means by c and its precisions by 1/c^2 (the same
+    Gaussians in other torque units) multiplies that joint's policy mean by c and changes
+    nothing else: the S-step treats a light wrist and a heavy shoulder alike."""
+    batch = random_batch(M=200, dX=4, dU=3, seed=18)
+    c = torch.tensor([1.0, 1e3, 1e-2], dtype=F64)
+    scaled = batch._replace(
+        mean_cur=batch.mean_cur * c,
+        mean_pre=batch.mean_pre * c,
+        prec_cur=batch.prec_cur / (c[:, None] * c[None, :]),
+        prec_pre=batch.prec_pre / (c[:, None] * c[None, :]),
+    )
+    config = PolicyConfig(hidden_sizes=(16, 16), steps=100, batch_size=32)
+    policy, other = GaussianPolicy(4, 3, config), GaussianPolicy(4, 3, config)
+    distill(policy, batch)
+    distill(other, scaled)
+    assert torch.allclose(other(batch.x), policy(batch.x) * c, rtol=1e-8, atol=0.0)
+    assert torch.allclose(other.variance, policy.variance * c**2, rtol=1e-12)
 
 
 def test_whitening_floors_the_std() -> None:

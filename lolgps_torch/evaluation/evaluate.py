@@ -23,7 +23,7 @@ from lolgps_torch.data.checkpoint import load_policy
 from lolgps_torch.data.run_folder import RunFolder, RunInfo, read_json, write_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, area_centres, area_of, sample_area_positions
-from lolgps_torch.evaluation.jobs import JobResult, run_jobs
+from lolgps_torch.evaluation.jobs import JobResult, run_jobs, run_jobs_on_ray
 from lolgps_torch.evaluation.metrics import (
     aggregate,
     average_final_success,
@@ -207,6 +207,7 @@ def evaluate_run(
     scratch: str | Path | None = None,
     batch_size: int = 10,
     square: tuple[SquareConfig, int] | None = None,
+    ray: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate every stage's checkpoint of ``run_dir`` and write its ``eval.json``.
 
@@ -219,6 +220,8 @@ def evaluate_run(
     :param batch_size: rollouts per batch (worlds per worker).
     :param square: the 2-D stream's test set instead of areas or positions: its geometry and
         the seed of its positions.
+    :param ray: run the rollouts on Ray instead of processes: ``"local"`` starts a local
+        instance of ``workers`` CPUs, anything else is a cluster address (e.g. ``auto``).
     :returns: the dict written to ``eval.json``.
     """
     if areas is not None and positions is not None:
@@ -238,7 +241,12 @@ def evaluate_run(
     batches = [tuple(flat[i : i + batch_size]) for i in range(0, len(flat), batch_size)]
     jobs = [Job(i, batch) for i in range(len(policies)) for batch in batches]
     states = [policy for _, policy in policies]
-    results = run_jobs(info.task, states, jobs, workers, min(batch_size, len(flat)))
+    n_worlds = min(batch_size, len(flat))
+    if ray is None:
+        results = run_jobs(info.task, states, jobs, workers, n_worlds)
+    else:
+        address = None if ray == "local" else ray
+        results = run_jobs_on_ray(info.task, states, jobs, address, workers, n_worlds)
     stages = _stage_results(folder, info, policies, groups, results)
     evaluated = [s for s, _ in policies]
     evaluation = {

@@ -22,6 +22,7 @@ from typing import NamedTuple
 
 import torch
 
+from lolgps_torch.cluster import import_ray, ray_connection
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.worker import (
     Failure,
@@ -30,6 +31,7 @@ from lolgps_torch.evaluation.worker import (
     PolicyState,
     Rollouts,
     RolloutSetup,
+    SetupRoller,
     next_job,
     run_worker,
 )
@@ -182,3 +184,42 @@ def run_jobs(
         if peg is not None:
             peg.close()
         torch.set_num_threads(threads)
+
+
+def run_jobs_on_ray(
+    task: TaskConfig,
+    policies: Sequence[PolicyState],
+    jobs: Sequence[Job],
+    address: str | None,
+    num_cpus: int,
+    n_worlds: int,
+) -> list[JobResult]:
+    """Results of ``jobs``, in order, from Ray actors of one CPU each (one per CPU of the
+    cluster at ``address``, or of a local instance of ``num_cpus`` CPUs when None): each
+    builds its worlds once from the task's :class:`RolloutSetup` and runs the jobs it is
+    given, one at a time; this process checks the policies against the task first and scores
+    every rollout as :func:`run_jobs` does, so the results are the same."""
+    ray = import_ray()
+    with ray_connection(ray, address, num_cpus) as slots:
+        peg = PegTask(task, n_worlds=n_worlds)
+        try:
+            PolicyRoller(peg.sampler, peg.layout, policies)  # the policies' sizes, checked here
+            roller = ray.remote(num_cpus=1)(SetupRoller)
+            setup = ray.put(_setup(peg, n_worlds, policies))
+            actors = [roller.remote(setup) for _ in range(max(1, min(slots, len(jobs))))]
+            waiting = list(enumerate(jobs))
+            pending = {actor.roll.remote(*waiting.pop(0)): actor for actor in actors if waiting}
+            found: dict[int, JobResult] = {}
+            bar = Bar(len(jobs), "evaluation")
+            while pending:
+                (ref,), _ = ray.wait(list(pending), num_returns=1)
+                actor = pending.pop(ref)
+                index, rollouts = ray.get(ref)
+                found[index] = _score(peg, jobs[index], rollouts)
+                bar.update(1)
+                if waiting:
+                    pending[actor.roll.remote(*waiting.pop(0))] = actor
+            bar.close()
+            return [found[i] for i in range(len(jobs))]
+        finally:
+            peg.close()

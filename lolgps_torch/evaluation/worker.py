@@ -122,6 +122,19 @@ class PolicyRoller:
         return Rollouts(x.numpy(), u.numpy(), final.numpy())
 
 
+class SetupRoller:
+    """A :class:`PolicyRoller` in worlds it builds from a :class:`RolloutSetup`, on one torch
+    thread: the state of one Ray actor of the evaluation (its worlds live as long as it)."""
+
+    def __init__(self, setup: RolloutSetup) -> None:
+        torch.set_num_threads(1)
+        self.roller = PolicyRoller(setup.sampler(), StateLayout(setup.arm.dof), setup.policies)
+
+    def roll(self, index: int, job: Job) -> tuple[int, Rollouts]:
+        """``(index, rollouts of job)``."""
+        return index, self.roller(job)
+
+
 def next_job(counter: Synchronized[int], n_jobs: int) -> int | None:
     """Claim the next unclaimed job index from the shared counter (None: all claimed)."""
     with counter.get_lock():

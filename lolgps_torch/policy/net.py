@@ -80,12 +80,14 @@ def _mlp(
 
 class GaussianPolicy(torch.nn.Module):
     """``pi_theta(u | x) = N(mu_theta(x), diag(sigma^2))`` with
-    ``mu_theta(x) = MLP((x - x_mean) / x_std)``.
+    ``mu_theta(x) = u_mean + u_scale * MLP((x - x_mean) / x_std)``.
 
-    The whitening buffers (``x_mean``, ``x_std``, the latter floored at ``std_floor``) and the
-    action variance ``sigma^2`` are set by the S-step: the first from the training states, the
-    second in closed form (see :func:`lolgps_torch.policy.sstep.distill`); the MLP weights by
-    Adam. ``trained`` (a buffer, so it survives save/load) says whether an S-step has run.
+    The input whitening (``x_mean``, ``x_std``, the latter floored at ``std_floor``), the action
+    variance ``sigma^2`` and the output scaling (``u_mean``, ``u_scale``) are set by the S-step:
+    the whitening from the training states, ``sigma^2`` in closed form, and the output scaling
+    from the teachers' means and ``sigma`` itself, so the MLP's outputs are in units of the
+    policy's own standard deviation on every joint of any arm (see
+    :func:`lolgps_torch.policy.sstep.distill`); the MLP weights by Adam. ``trained`` (a buffer, so it survives save/load) says whether an S-step has run.
 
     :param dX: state size. :param dU: action size.
     :param config: architecture and training settings (defaults: :class:`PolicyConfig`).
@@ -94,6 +96,8 @@ class GaussianPolicy(torch.nn.Module):
 
     x_mean: Tensor
     x_std: Tensor
+    u_mean: Tensor
+    u_scale: Tensor
     variance: Tensor
     trained_flag: Tensor
 
@@ -111,13 +115,15 @@ class GaussianPolicy(torch.nn.Module):
         self.net: torch.nn.Module = _mlp(dX, dU, self.config.hidden_sizes, generator)
         self.register_buffer("x_mean", torch.zeros(dX, dtype=torch.float64))
         self.register_buffer("x_std", torch.ones(dX, dtype=torch.float64))
+        self.register_buffer("u_mean", torch.zeros(dU, dtype=torch.float64))
+        self.register_buffer("u_scale", torch.ones(dU, dtype=torch.float64))
         self.register_buffer("variance", torch.ones(dU, dtype=torch.float64))  # diag(Sigma_pi)
         self.register_buffer("trained_flag", torch.zeros((), dtype=torch.bool))
         self.to(device)
 
     def forward(self, x: Tensor) -> Tensor:
         """Action mean ``mu_theta(x)``: ``[..., dX] -> [..., dU]``."""
-        return self.net((x - self.x_mean) / self.x_std)
+        return torch.addcmul(self.u_mean, self.net((x - self.x_mean) / self.x_std), self.u_scale)
 
     def covariance(self) -> Tensor:
         """``Sigma_pi = diag(sigma^2)``, ``[dU, dU]``."""
@@ -139,6 +145,15 @@ class GaussianPolicy(torch.nn.Module):
             raise LolgpsError(f"whitening needs states [M >= 1, {self.dX}], got {tuple(x.shape)}")
         self.x_mean.copy_(x.mean(0))
         self.x_std.copy_(x.std(0, correction=0).clamp_min(self.config.std_floor))
+
+    @torch.no_grad()
+    def set_output_scaling(self, mean: Tensor, scale: Tensor) -> None:
+        """Set ``u_mean: [dU]`` and ``u_scale: [dU]`` (finite, scale positive)."""
+        good = mean.isfinite().all() & scale.isfinite().all() & (scale > 0).all()
+        if mean.shape != (self.dU,) or scale.shape != (self.dU,) or not bool(good):
+            raise LolgpsError(f"policy output scaling must be finite [{self.dU}], scale positive")
+        self.u_mean.copy_(mean)
+        self.u_scale.copy_(scale)
 
     @torch.no_grad()
     def set_variance(self, variance: Tensor) -> None:

@@ -125,6 +125,24 @@ def optimal_variance(batch: DistillBatch, pre_weight: float = 1.0) -> Tensor:
     return n_terms / (diag_cur.sum(0) + pre_weight * diag_pre.sum(0))
 
 
+def set_statistics(policy: GaussianPolicy, batch: DistillBatch, pre_weight: float) -> None:
+    """The policy's fixed statistics for an S-step on ``batch``: the input whitening from its
+    states, ``Sigma_pi`` in closed form (:func:`optimal_variance`), and the output scaling
+    ``u_mean`` = the mean of the p_cur means, ``u_scale_j = max(std_j, sigma_j)``, the spread of
+    joint j's p_cur means floored at the policy's own standard deviation.
+
+    With the outputs scaled, the MLP's targets are O(1) on every joint, whatever the joint's
+    torque units: the trained net is the same if one joint's torques are multiplied by c (its
+    means by c, its precisions by 1/c^2). Without it, one joint whose teachers are very sure
+    (a light distal link: precisions of 1e7 beside 20 on the shoulder) dominates the loss and
+    the shared hidden layers, and the other joints are under-fitted.
+    """
+    policy.set_whitening(batch.x)
+    policy.set_variance(optimal_variance(batch, pre_weight))
+    spread = batch.mean_cur.std(0, correction=0)
+    policy.set_output_scaling(batch.mean_cur.mean(0), spread.maximum(policy.variance.sqrt()))
+
+
 @contextmanager
 def _intra_op_threads(n: int | None) -> Iterator[None]:
     """Run the body with ``n`` torch intra-op threads (None: unchanged), then restore."""
@@ -285,7 +303,7 @@ def distill(
 ) -> list[float]:
     """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8).
 
-    Steps: whitening from ``batch.x``; ``Sigma_pi`` in closed form (:func:`optimal_variance`);
+    Steps: whitening, ``Sigma_pi`` and output scaling from the batch (:func:`set_statistics`);
     each row's constant part of the loss (:class:`Rows`); then ``config.steps`` :class:`Adam`
     steps (fresh optimiser state, learning rate decayed along a cosine to 5% of
     ``config.learning_rate``, :func:`cosine_rates`) on minibatches of ``config.batch_size`` rows
@@ -308,8 +326,7 @@ def distill(
     generator = generator if generator is not None else torch.Generator().manual_seed(config.seed)
     _check(batch)
     batch = DistillBatch(*(field.detach() for field in batch))
-    policy.set_whitening(batch.x)
-    policy.set_variance(optimal_variance(batch, config.pre_weight))
+    set_statistics(policy, batch, config.pre_weight)
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
     history = batch.x.new_empty(config.steps)
     with _intra_op_threads(config.num_threads), torch.no_grad():
@@ -321,9 +338,10 @@ def distill(
         ):
             minibatch = Rows(*(field.index_select(0, rows) for field in rows_all))
             activations = net.forward(minibatch.x)
-            loss, grad_mean = minibatch_loss(activations[-1], minibatch, config.pre_weight)
+            mean = torch.addcmul(policy.u_mean, activations[-1], policy.u_scale)
+            loss, grad_mean = minibatch_loss(mean, minibatch, config.pre_weight)
             history[step] = loss
-            net.backward(activations, grad_mean)
+            net.backward(activations, grad_mean * policy.u_scale)
             adam.step(net.flat, net.grad, rate)
         net.write_back()
     policy.trained = True

@@ -34,6 +34,7 @@ from lolgps_torch.data.run import LoadedRun, load_run
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import read_evaluation
+from lolgps_torch.evaluation.retention import fit_error
 from lolgps_torch.policy import GaussianPolicy, policy_actor
 
 
@@ -100,8 +101,7 @@ def _fit_line(
     with torch.no_grad():
         diff = policy(x[:, at]) - mean_cur[:, at]
     relative = (diff.norm(dim=-1) / mean_cur[:, at].norm(dim=-1)).mean(0)
-    d = diff.unsqueeze(-1)
-    sigmas = (d.mT @ prec_cur[:, at] @ d).flatten(-3).sqrt().mean(0)
+    sigmas = fit_error(policy, x[:, at], mean_cur[:, at], prec_cur[:, at]).mean(0)
     return (
         "|mu_theta - mu_cur| / |mu_cur| "
         + " ".join(f"{v:.2f}" for v in relative)
