@@ -44,6 +44,7 @@ class DistillRecord:
     time_distill: float
     distill_rows: int
     iteration: int | None = None
+    repairs: int | None = None
     event: Literal["distilled"] = "distilled"
 
     def to_json(self) -> dict[str, Any]:
@@ -65,6 +66,7 @@ class ConditionSummary:
     :param rollouts: rollouts drawn at the condition.
     :param failure: why local learning stopped early on a numerical failure (None: it did
         not); the condition's D_g then holds the successes before it.
+    :param repairs: S-step rounds run after the first because the policy missed a condition.
     """
 
     condition: int
@@ -80,6 +82,7 @@ class ConditionSummary:
     distill_loss: float | None
     failure: str | None = None
     rollouts: int = 0
+    repairs: int = 0
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

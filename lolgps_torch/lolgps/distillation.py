@@ -115,24 +115,41 @@ class Distiller:
         self.task, self.config, self.replay = task, config, replay
         self.augment, self.augment_scale = augment, augment_scale
 
-    def __call__(self, policy: GaussianPolicy, new: list[Labelled], seed: int) -> list[float]:
+    def __call__(
+        self,
+        policy: GaussianPolicy,
+        new: list[Labelled],
+        seed: int,
+        emphasis: frozenset[int] = frozenset(),
+        config: PolicyConfig | None = None,
+    ) -> list[float]:
         """Fit ``policy`` on the ``new`` conditions' D_g with their perturbed copies, plus the
-        replay; returns the losses (empty when there is no data)."""
+        replay; returns the losses (empty when there is no data).
+
+        :param emphasis: conditions whose rows enter twice, by place: ``0 .. R-1`` the replay's
+            conditions in order, ``R + i`` the ``new`` item ``i``.
+        :param config: the S-step's settings (default: the distiller's).
+        """
         gen = torch.Generator().manual_seed(seed)
-        batches = []
-        for item in new:
-            batches.append(item.data.to_batch())
-            if item.data.x.shape[0] > 1 and self.augment > 0:
-                batches.append(self._augmented(item, gen))
+        stored = []
         if self.replay is not None:
-            for index in self.replay.conditions():
-                batches.append(
-                    self.replay.read_condition(index, self.task.device).samples.to_batch()
-                )
+            replay = self.replay
+            stored = [
+                replay.read_condition(index, self.task.device).samples.to_batch()
+                for index in replay.conditions()
+            ]
+        batches = []
+        for place, rows in enumerate(stored):
+            batches += [rows] * (2 if place in emphasis else 1)
+        for place, item in enumerate(new, start=len(stored)):
+            own = [item.data.to_batch()]
+            if item.data.x.shape[0] > 1 and self.augment > 0:
+                own.append(self._augmented(item, gen))
+            batches += own * (2 if place in emphasis else 1)
         batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
         if batch.x.shape[0] == 0:
             return []
-        return distill(policy, batch, self.config, gen)
+        return distill(policy, batch, config or self.config, gen)
 
     def _augmented(self, item: Labelled, gen: torch.Generator) -> DistillBatch:
         """``augment`` copies of D_g's states, q and q-dot perturbed by ``augment_scale`` times

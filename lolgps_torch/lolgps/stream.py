@@ -19,9 +19,10 @@ Naive sequential learning is the same loop without p_pre and without the replay.
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal, NamedTuple, get_args
 
 import torch
@@ -60,6 +61,8 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
+    :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
+        condition learnt so far (0: one S-step, as in the paper).
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -73,6 +76,7 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
+    repairs: int = 3
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -94,6 +98,7 @@ class StreamConfig:
                 "augment": self.augment >= 0,
                 "augment_scale": 0.0 <= self.augment_scale < float("inf"),
                 "max_iterations": self.max_iterations >= 1,
+                "repairs": self.repairs >= 0,
                 "seed": self.seed >= 0,
             },
         )
@@ -158,10 +163,9 @@ class StreamLearner:
         labels = label_source(final, local < self.threshold, outcome.found.latest)
         data = label(self.task, outcome.found.kept, labels)
         t0 = time.perf_counter()
-        losses = self.distill(self.policy, [Labelled(offset, data, labels)], seed)  # eq. 8
+        losses, after, repairs = self.distill_checked(Labelled(offset, data, labels), seed)
         rows = int(data.x.shape[0]) * self.task.T
-        self.log(DistillRecord(index, time.perf_counter() - t0, rows))
-        after = policy_distances(self.task, self.policy, [offset])[0]
+        self.log(DistillRecord(index, time.perf_counter() - t0, rows, repairs=repairs))
         entry = ConditionSummary(
             condition=index,
             offset=list(offset),
@@ -176,6 +180,7 @@ class StreamLearner:
             distill_loss=losses[-1] if losses else None,
             failure=failure,
             rollouts=outcome.rollouts,
+            repairs=repairs,
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
@@ -184,6 +189,36 @@ class StreamLearner:
             index, offset, data, final.iteration, labels.p_cur, labels.p_pre
         )
         return entry
+
+    def distill_checked(self, item: Labelled, seed: int) -> tuple[list[float], float, int]:
+        """The S-step (eq. 8), checked in closed loop: the policy's noiseless rollouts at every
+        condition learnt so far (with the replay; else the new one). While one misses, up to
+        ``repairs`` more rounds of ``steps // 3`` Adam steps, each from the best policy so far
+        with the missed conditions' rows entering twice; the policy reaching the most
+        conditions (then the smallest total distance) is kept. Returns the kept round's
+        losses, the new condition's distance and the rounds run."""
+        offsets = [*(self.replay.offsets() if self.config.replay else []), item.offset]
+        losses = self.distill(self.policy, [item], seed)
+        if not self.policy.trained:
+            return losses, float("nan"), 0
+        distances = policy_distances(self.task, self.policy, offsets)
+        best = (self._score(distances), copy.deepcopy(self.policy.state_dict()), losses, distances)
+        rounds, repair = 0, replace(self.config.policy, steps=max(1, self.config.policy.steps // 3))
+        while rounds < self.config.repairs and best[0][0] < len(offsets):
+            rounds += 1
+            self.policy.load_state_dict(best[1])
+            missed = frozenset(i for i, d in enumerate(best[3]) if not d < self.threshold)
+            losses = self.distill(self.policy, [item], seed + 1_000_003 * rounds, missed, repair)
+            distances = policy_distances(self.task, self.policy, offsets)
+            if self._score(distances) > best[0]:
+                state = copy.deepcopy(self.policy.state_dict())
+                best = (self._score(distances), state, losses, distances)
+        self.policy.load_state_dict(best[1])
+        return best[2], best[3][-1], rounds
+
+    def _score(self, distances: list[float]) -> tuple[int, float]:
+        """Conditions reached, then minus the total distance: the larger the better."""
+        return sum(d < self.threshold for d in distances), -sum(distances)
 
     def learn_locally(
         self, learner: LocalLearner, linearize: Linearizer | None, index: int

@@ -10,6 +10,9 @@
              search at the task's sizes, as ratios to the sampling time of the same iteration.
 - stream:    the share of a short stream's wall time (2 conditions, sampling, fits, C-steps,
              S-steps, evaluation rollouts) spent inside PyBullet's stepSimulation.
+- sweep:     4 cells (seeds 0-3) of a 2-condition stream run by scripts/sweep.py on a local Ray
+             instance of 2 CPUs, against the same 4 run_stream.py commands one after another
+             (the speed-up; one run of each, not the median: they take minutes).
 Medians over the repeats; the machine is noisy, so compare ratios, not seconds.
 """
 
@@ -17,9 +20,12 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -139,7 +145,38 @@ def bench_stream(task: PegTask, repeats: int) -> dict[str, float]:
     }
 
 
-BENCHES = {"physics": bench_physics, "algorithm": bench_algorithm, "stream": bench_stream}
+SWEEP_CONDITIONS = "[[0.02, 0.02], [-0.02, 0.02]]"
+
+
+def bench_sweep(task: PegTask, repeats: int) -> dict[str, float]:
+    """Wall time of 4 short streams one after another against the same 4 as a sweep's cells
+    on a local Ray instance of 2 CPUs (Ray's start-up included)."""
+    scripts = Path(__file__).resolve().parents[1]
+    urdf = task.config.urdf
+    with tempfile.TemporaryDirectory() as tmp:
+        conditions = Path(tmp) / "conditions.json"
+        conditions.write_text(SWEEP_CONDITIONS)
+        t0 = time.perf_counter()
+        for seed in range(4):
+            command = [sys.executable, str(scripts / "run_stream.py"), "--urdf", urdf,
+                       "--conditions", str(conditions), "--seed", str(seed),
+                       "--out", f"{tmp}/seq-{seed}"]  # fmt: skip
+            subprocess.run(command, check=True, capture_output=True)
+        sequential = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        command = [sys.executable, str(scripts / "sweep.py"), "--seeds", "0-3", "--urdf", urdf,
+                   "--conditions", str(conditions), "--num-cpus", "2", "--out", f"{tmp}/sweep"]  # fmt: skip
+        subprocess.run(command, check=True, capture_output=True)
+        swept = time.perf_counter() - t0
+    return {"sequential_s": sequential, "sweep_s": swept, "speedup": sequential / swept}
+
+
+BENCHES = {
+    "physics": bench_physics,
+    "algorithm": bench_algorithm,
+    "stream": bench_stream,
+    "sweep": bench_sweep,
+}
 
 
 def main() -> None:
