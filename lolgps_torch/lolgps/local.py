@@ -26,6 +26,7 @@ from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.errors import check_fields
+from lolgps_torch.policy import GaussianPolicy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.trajopt import (
@@ -171,8 +172,23 @@ def iterate(
         fit, p_pre if p_pre is not None and anchor_to_pre else learner.p_cur
     )
     t3 = time.perf_counter()
+    record = iteration_record(where, samples, (epsilon, eta, kl), learner.step_mult,
+                              (t1 - t0, t2 - t1, t3 - t2))  # fmt: skip
+    return samples, p_pre, record
+
+
+def iteration_record(
+    where: tuple[int, int, float],
+    samples: Trajectories,
+    cstep: tuple[float, float, float],
+    step_mult: float,
+    times: tuple[float, float, float],
+) -> IterationRecord:
+    """The record of one iteration: ``where`` (condition, iteration, alpha), its samples'
+    statistics, the C-step's (epsilon, eta, KL), and its sampling, fit and C-step times."""
     condition, iteration, alpha = where
-    record = IterationRecord(
+    epsilon, eta, kl = cstep
+    return IterationRecord(
         condition=condition,
         iteration=iteration,
         alpha=alpha,
@@ -183,9 +199,31 @@ def iterate(
         epsilon=epsilon,
         eta=eta,
         kl=kl,
-        step_mult=learner.step_mult,
-        time_sample=t1 - t0,
-        time_fit=t2 - t1,
-        time_cstep=t3 - t2,
+        step_mult=step_mult,
+        time_sample=times[0],
+        time_fit=times[1],
+        time_cstep=times[2],
     )
+
+
+def rehearse(
+    learner: LocalLearner,
+    policy: GaussianPolicy,
+    linearize: Linearizer,
+    where: tuple[int, int],
+) -> tuple[Trajectories, LinearGaussian, IterationRecord]:
+    """One iteration of the global policy acting alone at the learner's condition (forward
+    transfer): N rollouts of ``pi`` with its own noise ``Sigma_pi`` (smoothed as the local
+    controllers' is) and its linearisation p_pre around them; no dynamics fit, no C-step.
+    The record has alpha 1 (p_act = pi) and a zero C-step."""
+    t0 = time.perf_counter()
+    cfg, task = learner.config, learner.task
+    noise = smoothed_noise(cfg.samples, task.T, task.layout.dU, cfg.noise_smoothing,
+                           learner.generator).to(task.device)  # fmt: skip
+    samples = task.sample(policy_actor(policy, noise), [learner.offset] * cfg.samples)
+    t1 = time.perf_counter()
+    p_pre = linearize(samples.x)
+    t2 = time.perf_counter()
+    record = iteration_record((*where, 1.0), samples, (0.0, 0.0, 0.0), learner.step_mult,
+                              (t1 - t0, t2 - t1, 0.0))  # fmt: skip
     return samples, p_pre, record

@@ -3,7 +3,9 @@
     pi <- fresh net
     for each condition m as it arrives:
         p_cur <- hold controller; p_pre <- none; D_g(m) <- {}
-        repeat:
+        if pi is trained and its noiseless rollout at m succeeds (transfer):
+            D_g(m) <- successes of a few iterations of pi's own rollouts, labelled by p_pre
+        else repeat:
             p_act <- p_cur if no p_pre else alpha p_pre + (1 - alpha) p_cur       (eq. 6)
             D_i <- N rollouts of p_act; fit dynamics
             p_pre <- linearise pi around D_i, if pi was trained                  (line 14)
@@ -13,6 +15,7 @@
         until successful samples from ``success_phases`` iterations are in D_g(m), or a limit
         label D_g(m) with the final p_cur and p_pre (or the last successful ones)
         pi <- argmin KL(pi || p_cur) + lambda KL(pi || p_pre) over D_g(m) + replay D_g(<m) (eq. 8)
+              repeated from the best pi (a few times at most) while pi misses a condition <= m
 
 Naive sequential learning is the same loop without p_pre and without the replay.
 """
@@ -35,13 +38,14 @@ from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label, label_source
-from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate
+from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate, rehearse
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import LinearGaussian, Trajectories
 
 AlphaSchedule = Literal["constant", "dynamic"]
+Transfer = Literal["none", "policy"]
 CStepAnchor = Literal["previous", "pre"]
 Log = Callable[[IterationRecord | DistillRecord], None]
 
@@ -61,6 +65,10 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
+    :param transfer: at a new condition where the trained policy's noiseless rollout already
+        succeeds, rehearse the policy instead of learning from the hold controller (policy),
+        or always learn (none, the paper).
+    :param transfer_phases: iterations of the policy's own rollouts a rehearsal takes.
     :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0: one S-step, as in the paper).
     :param seed: seeds every condition's sampling and every S-step.
@@ -76,6 +84,8 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
+    transfer: Transfer = "policy"
+    transfer_phases: int = 3
     repairs: int = 3
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
@@ -85,6 +95,7 @@ class StreamConfig:
         options = (
             ("alpha_schedule", AlphaSchedule),
             ("cstep_anchor", CStepAnchor),
+            ("transfer", Transfer),
         )
         for name, kind in options:
             if getattr(self, name) not in get_args(kind):
@@ -99,6 +110,7 @@ class StreamConfig:
                 "augment_scale": 0.0 <= self.augment_scale < float("inf"),
                 "max_iterations": self.max_iterations >= 1,
                 "repairs": self.repairs >= 0,
+                "transfer_phases": self.transfer_phases >= 1,
                 "seed": self.seed >= 0,
             },
         )
@@ -117,6 +129,16 @@ class Outcome(NamedTuple):
     final: Labels
     rollouts: int
     failure: str | None
+
+
+class Spent(NamedTuple):
+    """Iterations and rollouts already spent at a condition."""
+
+    iterations: int
+    rollouts: int
+
+
+NOTHING_SPENT = Spent(0, 0)
 
 
 class Successes:
@@ -156,7 +178,9 @@ class StreamLearner:
         cfg, seed = self.config, condition_seed(self.config, index)
         learner = LocalLearner(self.task, offset, cfg.local, seed=seed)
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
-        outcome = self.learn_locally(learner, linearize, index)
+        outcome, probe = self.transfer(learner, linearize, index)
+        if outcome is None:  # learn from the hold controller, after the transfer's iterations
+            outcome = self.learn_locally(learner, linearize, index, probe)
         # D_g is labelled here: by the final p_cur, unless its own rollout misses
         failure, final = outcome.failure, outcome.final
         local = float("inf") if failure else noiseless_distance(self.task, final.p_cur, offset)
@@ -220,17 +244,47 @@ class StreamLearner:
         """Conditions reached, then minus the total distance: the larger the better."""
         return sum(d < self.threshold for d in distances), -sum(distances)
 
-    def learn_locally(
+    def transfer(
         self, learner: LocalLearner, linearize: Linearizer | None, index: int
+    ) -> tuple[Outcome | None, Spent]:
+        """Forward transfer (``transfer="policy"``) at a new condition: where the trained
+        policy's noiseless rollout succeeds (one probe rollout), ``transfer_phases``
+        iterations of the policy acting alone (:func:`rehearse`) replace local learning, and
+        its linearisations p_pre label D_g. Returns the outcome, or None with what was spent
+        when the probe misses or a rehearsal iteration has no success: then the condition is
+        learnt as the paper does."""
+        cfg = self.config
+        if cfg.transfer == "none" or linearize is None:
+            return None, NOTHING_SPENT
+        if not policy_distances(self.task, self.policy, [learner.offset])[0] < self.threshold:
+            return None, Spent(0, 1)
+        found = Successes()
+        for i in range(cfg.transfer_phases):
+            samples, p_pre, record = rehearse(learner, self.policy, linearize, (index, i))
+            self.log(record)
+            spent = Spent(i + 1, 1 + (i + 1) * cfg.local.samples)
+            if not samples.success.any():
+                return None, spent
+            found.add(samples, Labels(p_pre, None, i))
+        return Outcome(found, Labels(p_pre, None, spent.iterations), spent.rollouts, None), spent
+
+    def learn_locally(
+        self,
+        learner: LocalLearner,
+        linearize: Linearizer | None,
+        index: int,
+        spent: Spent = NOTHING_SPENT,
     ) -> Outcome:
         """Algorithm 2's inner loop: iterations of sample, fit, p_pre and C-step until
         ``success_phases`` iterations had successful samples, or the limit. A numerical
-        failure ends the loop and is reported; the stream goes on."""
+        failure ends the loop and is reported; the stream goes on. Iterations are numbered,
+        and rollouts counted, after those ``spent`` already (by a transfer that fell through).
+        """
         cfg = self.config
         p_pre: LinearGaussian | None = None
         alpha, found, iterations, failure = cfg.alpha, Successes(), 0, None
         try:
-            for i in range(cfg.max_iterations):
+            for i in range(spent.iterations, spent.iterations + cfg.max_iterations):
                 iterations, p_cur = i + 1, learner.p_cur
                 p_act = p_cur if p_pre is None else mix(p_pre, p_cur, alpha)  # eq. 6
                 used = alpha if p_pre is not None else 0.0
@@ -244,7 +298,7 @@ class StreamLearner:
                     break
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"
-        rollouts = iterations * cfg.local.samples
+        rollouts = spent.rollouts + (iterations - spent.iterations) * cfg.local.samples
         return Outcome(found, Labels(learner.p_cur, p_pre, iterations), rollouts, failure)
 
     def linearizer(self) -> Linearizer | None:
