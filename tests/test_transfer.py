@@ -1,10 +1,22 @@
-"""Forward transfer as Continual World defines it, on hand-made numbers."""
+"""Forward transfer: the metric as Continual World defines it, on hand-made numbers, and the
+stream's transfer at a condition the policy already does."""
 
 from __future__ import annotations
 
+import shutil
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
 import pytest
 
+from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.evaluation.transfer import forward_transfer, rates_by_condition, success_auc
+from lolgps_torch.lolgps import StreamConfig
+from lolgps_torch.lolgps.stream import StreamLearner
+from lolgps_torch.task import PegTask, TaskConfig
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_auc_pads_a_finished_condition_with_its_last_rate() -> None:
@@ -31,3 +43,32 @@ def test_rates_come_from_iteration_records_only() -> None:
         {"condition": 1, "iteration": 0, "success_rate": 1.0},
     ]
     assert rates_by_condition(records) == {0: [0.0, 0.4], 1: [1.0]}
+
+
+@pytest.fixture(scope="module")
+def kuka_task() -> Iterator[PegTask]:
+    task = PegTask(TaskConfig(urdf=str(ROOT / "robots" / "kuka_peg.urdf")), n_worlds=5)
+    yield task
+    task.close()
+
+
+def test_a_condition_the_policy_already_does_costs_fewer_rollouts(
+    kuka_task: PegTask, tmp_path: Path
+) -> None:
+    """The policy learnt at one hole, then a hole 5 mm away: with transfer it is rehearsed
+    (a probe and one iteration of the policy's own rollouts), without it learnt from the hold
+    controller, from the same folder after the first condition."""
+    config = StreamConfig(success_phases=4, transfer_phases=1, max_iterations=12)
+    first = StreamLearner(kuka_task, config, RunFolder(tmp_path / "transfer"), lambda r: None)
+    entry = first.learn_condition(0, (0.0, 0.0))
+    assert entry.policy_success_after  # the policy does the first hole
+    shutil.copytree(tmp_path / "transfer", tmp_path / "none")
+    second = StreamLearner(
+        kuka_task, replace(config, transfer="none"), RunFolder(tmp_path / "none"), lambda r: None
+    )
+    assert len(second._restore()) == 1
+    near = (0.005, 0.0)
+    transferred, learnt = first.learn_condition(1, near), second.learn_condition(1, near)
+    assert transferred.rollouts == 1 + config.local.samples < learnt.rollouts
+    assert transferred.iterations == 1 and transferred.successful_samples > 0
+    assert transferred.policy_success_after and learnt.policy_success_after

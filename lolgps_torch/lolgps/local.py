@@ -207,23 +207,16 @@ def iteration_record(
 
 
 def rehearse(
-    learner: LocalLearner,
-    policy: GaussianPolicy,
-    linearize: Linearizer,
-    where: tuple[int, int],
-) -> tuple[Trajectories, LinearGaussian, IterationRecord]:
+    learner: LocalLearner, policy: GaussianPolicy, where: tuple[int, int]
+) -> tuple[Trajectories, IterationRecord]:
     """One iteration of the global policy acting alone at the learner's condition (forward
     transfer): N rollouts of ``pi`` with its own noise ``Sigma_pi`` (smoothed as the local
-    controllers' is) and its linearisation p_pre around them; no dynamics fit, no C-step.
-    The record has alpha 1 (p_act = pi) and a zero C-step."""
+    controllers' is); no dynamics fit, no C-step. The record has alpha 1 (p_act = pi)."""
     t0 = time.perf_counter()
     cfg, task = learner.config, learner.task
     noise = smoothed_noise(cfg.samples, task.T, task.layout.dU, cfg.noise_smoothing,
                            learner.generator).to(task.device)  # fmt: skip
     samples = task.sample(policy_actor(policy, noise), [learner.offset] * cfg.samples)
-    t1 = time.perf_counter()
-    p_pre = linearize(samples.x)
-    t2 = time.perf_counter()
     record = iteration_record((*where, 1.0), samples, (0.0, 0.0, 0.0), learner.step_mult,
-                              (t1 - t0, t2 - t1, 0.0))  # fmt: skip
-    return samples, p_pre, record
+                              (time.perf_counter() - t0, 0.0, 0.0))  # fmt: skip
+    return samples, record

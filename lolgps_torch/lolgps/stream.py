@@ -4,7 +4,7 @@
     for each condition m as it arrives:
         p_cur <- hold controller; p_pre <- none; D_g(m) <- {}
         if pi is trained and its noiseless rollout at m succeeds (transfer):
-            D_g(m) <- successes of a few iterations of pi's own rollouts, labelled by p_pre
+            D_g(m) <- successes of a few iterations of pi's own rollouts, labelled by pi
         else repeat:
             p_act <- p_cur if no p_pre else alpha p_pre + (1 - alpha) p_cur       (eq. 6)
             D_i <- N rollouts of p_act; fit dynamics
@@ -37,7 +37,16 @@ from lolgps_torch.data.records import ConditionSummary, DistillRecord, Iteration
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
-from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label, label_source
+from lolgps_torch.lolgps.distillation import (
+    Distiller,
+    Labelled,
+    Labels,
+    PolicyTeacher,
+    Teacher,
+    as_controller,
+    label,
+    label_source,
+)
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate, rehearse
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
@@ -183,7 +192,7 @@ class StreamLearner:
             outcome = self.learn_locally(learner, linearize, index, probe)
         # D_g is labelled here: by the final p_cur, unless its own rollout misses
         failure, final = outcome.failure, outcome.final
-        local = float("inf") if failure else noiseless_distance(self.task, final.p_cur, offset)
+        local = float("inf") if failure else self.noiseless(final.p_cur, offset)
         labels = label_source(final, local < self.threshold, outcome.found.latest)
         data = label(self.task, outcome.found.kept, labels)
         t0 = time.perf_counter()
@@ -210,7 +219,7 @@ class StreamLearner:
         save_policy(self.folder.checkpoint_dir(index), self.policy)
         self.folder.write_entry(index, entry.to_json())
         self.replay.append_condition(
-            index, offset, data, final.iteration, labels.p_cur, labels.p_pre
+            index, offset, data, final.iteration, as_controller(labels.p_cur), labels.p_pre
         )
         return entry
 
@@ -240,6 +249,12 @@ class StreamLearner:
         self.policy.load_state_dict(best[1])
         return best[2], best[3][-1], rounds
 
+    def noiseless(self, teacher: Teacher, offset: tuple[float, float]) -> float:
+        """Final distance (m) of the teacher's noiseless rollout at ``offset``."""
+        if isinstance(teacher, PolicyTeacher):
+            return policy_distances(self.task, teacher.policy, [offset])[0]
+        return noiseless_distance(self.task, teacher, offset)
+
     def _score(self, distances: list[float]) -> tuple[int, float]:
         """Conditions reached, then minus the total distance: the larger the better."""
         return sum(d < self.threshold for d in distances), -sum(distances)
@@ -250,7 +265,8 @@ class StreamLearner:
         """Forward transfer (``transfer="policy"``) at a new condition: where the trained
         policy's noiseless rollout succeeds (one probe rollout), ``transfer_phases``
         iterations of the policy acting alone (:func:`rehearse`) replace local learning, and
-        its linearisations p_pre label D_g. Returns the outcome, or None with what was spent
+        the policy labels D_g with its own means and covariance (:class:`PolicyTeacher`), so
+        the S-step is asked to keep what already works there. Returns the outcome, or None with what was spent
         when the probe misses or a rehearsal iteration has no success: then the condition is
         learnt as the paper does."""
         cfg = self.config
@@ -259,14 +275,16 @@ class StreamLearner:
         if not policy_distances(self.task, self.policy, [learner.offset])[0] < self.threshold:
             return None, Spent(0, 1)
         found = Successes()
+        teacher = PolicyTeacher(copy.deepcopy(self.policy).eval(), self.task.T)
         for i in range(cfg.transfer_phases):
-            samples, p_pre, record = rehearse(learner, self.policy, linearize, (index, i))
+            samples, record = rehearse(learner, self.policy, (index, i))
             self.log(record)
             spent = Spent(i + 1, 1 + (i + 1) * cfg.local.samples)
             if not samples.success.any():
                 return None, spent
-            found.add(samples, Labels(p_pre, None, i))
-        return Outcome(found, Labels(p_pre, None, spent.iterations), spent.rollouts, None), spent
+            found.add(samples, Labels(teacher, None, i))
+        final = Labels(teacher, None, spent.iterations)
+        return Outcome(found, final, spent.rollouts, None), spent
 
     def learn_locally(
         self,
