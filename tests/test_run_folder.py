@@ -159,3 +159,13 @@ def test_metrics_read_back_without_a_torn_last_line(tmp_path: Path) -> None:
     folder.metrics_path.write_text('{"a": 1}\nbroken\n{"b": 2}\n')
     with pytest.raises(LolgpsError, match="line 2"):
         folder.read_metrics()
+
+
+def test_a_policy_saved_before_output_scaling_loads_as_the_same_policy() -> None:
+    policy = GaussianPolicy(3, 2, PolicyConfig(hidden_sizes=(8,)))
+    policy.set_whitening(torch.randn(20, 3, dtype=F64))
+    old = {k: v for k, v in policy.state_dict().items() if k not in ("u_mean", "u_scale")}
+    loaded = GaussianPolicy.from_state(policy.description(), old)
+    x = torch.randn(4, 3, dtype=F64)
+    assert torch.equal(loaded(x), policy(x))
+    assert torch.equal(loaded.u_scale, torch.ones(2, dtype=F64))

@@ -182,6 +182,8 @@ class GaussianPolicy(torch.nn.Module):
             settings = dict(description["config"])
             settings["hidden_sizes"] = tuple(settings["hidden_sizes"])
             policy = cls(int(description["dX"]), int(description["dU"]), PolicyConfig(**settings))
+            # checkpoints from before the output scaling: scale 1, offset 0 is the same policy
+            state = {"u_mean": policy.u_mean, "u_scale": policy.u_scale, **state}
             policy.load_state_dict(state)
         except (KeyError, TypeError, ValueError, RuntimeError) as error:
             text = str(error).strip()
