@@ -63,3 +63,21 @@ def test_xarm_learns_the_nominal_hole(tmp_path: Path) -> None:
         tmp_path, "--urdf", xarm, "--hole", "0", "0", "--iterations", "15", "--stop-at-success"
     )
     assert records[-1]["success_rate"] >= 0.6
+
+
+def test_xarm_policy_keeps_both_positions_of_a_small_stream(tmp_path: Path) -> None:
+    """The global policy on another arm, CI-sized: the xArm6 learns two holes 0.057 m apart
+    (two success phases each) and its policy inserts the peg at each right after that hole's
+    S-step and at the end. Before the S-step's output scaling and closed-loop check (commit
+    bb8ee72) the policy after the first S-step ended 0.0605 m from the first hole, a miss."""
+    xarm = os.path.join(pybullet_data.getDataPath(), "xarm/xarm6_robot.urdf")
+    conditions = tmp_path / "conditions.json"
+    conditions.write_text("[[-0.02, -0.02], [0.02, 0.02]]")
+    out = tmp_path / "run"
+    cmd = [sys.executable, "scripts/run_stream.py", "--urdf", xarm, "--conditions",
+           str(conditions), "--success-phases", "2", "--max-iterations", "10", "--out", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    entries = json.loads((out / "summary.json").read_text())["conditions"]
+    assert [e["policy_success_after"] for e in entries] == [True, True]
+    assert [e["policy_success_end"] for e in entries] == [True, True]
