@@ -230,3 +230,15 @@ def test_retention_script_tabulates_every_checkpoint(small_run: Path, tmp_path: 
     )
     assert (run / "retention.png").stat().st_size > 10_000
     assert "forgotten:" in proc.stdout
+
+
+def test_scale_table_reads_a_run(small_run: Path) -> None:
+    script = [sys.executable, "scripts/research/scale_table.py", "--run", str(small_run / "run")]
+    proc = subprocess.run([*script, "--at", "1", "2", "--window", "1"], capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = [line for line in proc.stdout.splitlines() if line.startswith("| 1 ") or
+            line.startswith("| 2 ")]  # fmt: skip
+    assert len(rows) == 2
+    bad = subprocess.run([*script, "--at", "9"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.startswith("error:")
