@@ -3,7 +3,7 @@
     pi <- fresh net
     for each condition m as it arrives:
         p_cur <- hold controller; p_pre <- none; D_g(m) <- {}
-        if pi is trained and its noiseless rollout at m succeeds (transfer):
+        if transfer is on, pi is trained and its noiseless rollout at m succeeds:
             D_g(m) <- successes of a few iterations of pi's own rollouts, labelled by pi
         else repeat:
             p_act <- p_cur if no p_pre else alpha p_pre + (1 - alpha) p_cur       (eq. 6)
@@ -74,9 +74,9 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
-    :param transfer: at a new condition where the trained policy's noiseless rollout already
-        succeeds, rehearse the policy instead of learning from the hold controller (policy),
-        or always learn (none, the paper).
+    :param transfer: always learn a new condition from the hold controller (none, the paper),
+        or rehearse the policy instead where its noiseless rollout already succeeds (policy:
+        fewer rollouts, but lower success on the test areas, docs/RESULTS.md section 9).
     :param transfer_phases: iterations of the policy's own rollouts a rehearsal takes.
     :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0: one S-step, as in the paper).
@@ -93,7 +93,7 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
-    transfer: Transfer = "policy"
+    transfer: Transfer = "none"
     transfer_phases: int = 3
     repairs: int = 3
     seed: int = 0
