@@ -7,8 +7,8 @@ import ast
 from pathlib import Path
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("errors", "types", "state", "progress", "layers", "cluster"),
-    ("robot", "controllers", "configs"),
+    ("errors", "types", "state", "progress", "layers"),
+    ("robot", "controllers", "configs", "cluster"),
     ("sim", "cost", "dynamics", "trajopt"),
     ("policy",),
     ("task",),

@@ -55,9 +55,10 @@ def kuka_task() -> Iterator[PegTask]:
 def test_a_condition_the_policy_already_does_costs_fewer_rollouts(
     kuka_task: PegTask, tmp_path: Path
 ) -> None:
-    """The policy learnt at one hole, then a hole 5 mm away: with transfer it is rehearsed
-    (a probe and one iteration of the policy's own rollouts), without it learnt from the hold
-    controller, from the same folder after the first condition."""
+    """The policy learnt at one hole, then the same hole again as a new condition (where the
+    policy is known to succeed: its rollout right after the S-step is the probe's): with
+    transfer it is rehearsed (a probe and one iteration of the policy's own rollouts), without
+    it learnt from the hold controller, from the same folder after the first condition."""
     config = StreamConfig(transfer="policy", success_phases=4, transfer_phases=1, max_iterations=12)
     first = StreamLearner(kuka_task, config, RunFolder(tmp_path / "transfer"), lambda r: None)
     entry = first.learn_condition(0, (0.0, 0.0))
@@ -67,8 +68,8 @@ def test_a_condition_the_policy_already_does_costs_fewer_rollouts(
         kuka_task, replace(config, transfer="none"), RunFolder(tmp_path / "none"), lambda r: None
     )
     assert len(second._restore()) == 1
-    near = (0.005, 0.0)
-    transferred, learnt = first.learn_condition(1, near), second.learn_condition(1, near)
+    again = (0.0, 0.0)
+    transferred, learnt = first.learn_condition(1, again), second.learn_condition(1, again)
     assert transferred.rollouts == 1 + config.local.samples < learnt.rollouts
     assert transferred.iterations == 1 and transferred.successful_samples > 0
     assert transferred.policy_success_after and learnt.policy_success_after
