@@ -10,7 +10,16 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SMALL = ["--max-iterations", "7", "--success-phases", "1", "--distill-steps", "200"]
+SMALL = [
+    "--max-iterations",
+    "7",
+    "--success-phases",
+    "1",
+    "--distill-steps",
+    "200",
+    "--repairs",
+    "0",
+]
 CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
 
 
