@@ -8,11 +8,13 @@ whose last term drifts the redundant directions towards mid-range) from several 
 batch, and keeps the converged solution furthest inside the joint limits.
 
 Placement.  With R the arm's reach from its shoulder (:func:`reach`), the nominal hole mouth
-is tried at ``shoulder + (rho R, 0, -eta R)`` for a grid of fractions ``(rho, eta)`` about
-``(reach_fraction, mouth_below_shoulder)``, nearest first: first as it is, then shifted by
-``-c`` with ``c`` the centre of the stream's positions (so that they straddle the spot).  The
-first mouth at which the start pose and every position's hole floor are reachable with the
-peg pointing down, inside the joint limits' margin, is kept.  Nothing but R scales it.
+is tried at ``shoulder + (rho R cos a, rho R sin a, -eta R)`` for a grid of fractions
+``(rho, eta)`` about ``(reach_fraction, mouth_below_shoulder)`` and azimuths a about the
+base's +x, nearest first (:func:`_candidates`): first as it is, then shifted by ``-c`` with
+``c`` the centre of the stream's positions (so that they straddle the spot).  The first mouth
+at which the start pose and every position's hole floor are reachable with the peg pointing
+down, inside the joint limits' margin, is kept.  Nothing but R scales it; an arm placed as
+before (a = 0, the configured fractions, all reachable) gets the same hole and start pose.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ Position = tuple[float, float]
 # tried by the placement
 _STEPS = (0.0, -0.1, 0.1, -0.2, 0.2, 0.3)
 _AZIMUTHS = (0, 45, -45, 90, -90, 135, -135, 180)
+_START_SCALES = (1.0, 0.5)
 _SAMPLES = 16384  # random poses for the down-pointing workspace
 _REACH_SAMPLES = 4096  # the first of them, for the reach
 _SCREEN = 0.1  # candidates are solved if every target is this near (x reach) a sampled tip
@@ -209,11 +212,11 @@ def place_task(
     positions = torch.tensor(config.positions or ((0.0, 0.0),), dtype=torch.float64)
     positions = positions.to(kin.device)
     M = positions.shape[0]
-    start_offset = torch.tensor(config.start_offset, dtype=torch.float64, device=kin.device)
     floor = torch.nn.functional.pad(positions, (0, 1), value=-depth)  # [M, 3] below the mouth
-    rel = floor if config.q0 is not None else torch.cat([start_offset[None], floor])  # [K, 3]
-    mouths = _candidate_mouths(shoulder, radius, positions, config)  # [C, 3], preferred first
-    tips = mouths[:, None] + rel  # [C, K, 3]
+    mouths, start_offsets = _candidates(shoulder, radius, positions, config)  # [C, 3] each
+    tips = mouths[:, None] + floor  # [C, M, 3]
+    if config.q0 is None:  # the start tip first
+        tips = torch.cat([(mouths + start_offsets)[:, None], tips], dim=1)  # [C, K, 3]
     if cloud_tip.shape[0] == 0:
         raise LolgpsError(_cannot_point_down(arm, radius))
     gap = torch.cdist(tips.reshape(-1, 3), cloud_tip).min(dim=-1)  # nearest sampled tip
@@ -230,7 +233,7 @@ def place_task(
         ok = (err <= config.ik_tolerance).reshape(len(chosen), -1)
         for row, candidate in enumerate(chosen):
             if bool(ok[row].all()):
-                return _geometry(arm, kin, config, mouths[candidate])
+                return _geometry(arm, kin, config, mouths[candidate], start_offsets[candidate])
         reached = max(reached, int(ok.sum(dim=-1).max()))
     if reached == 0:
         raise LolgpsError(_cannot_point_down(arm, radius))
@@ -244,13 +247,13 @@ def place_task(
 
 
 def _geometry(
-    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, mouth: Tensor
+    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, mouth: Tensor, offset: Tensor
 ) -> TaskGeometry:
     """The nominal mouth and the start pose: ``config.q0``, or the IK solution furthest inside
-    the limits for the peg tip at ``mouth + start_offset``, pointing down."""
+    the limits for the peg tip at ``mouth + offset``, pointing down."""
     if config.q0 is not None:
         return TaskGeometry(nominal_mouth=tuple(mouth.tolist()), q0=config.q0)
-    start = mouth + torch.tensor(config.start_offset, dtype=torch.float64, device=kin.device)
+    start = mouth + offset
     targets = vertical_peg_targets(start, -arm.point_offsets[1][2])
     q, err = solve_ik(kin, arm, targets, config.limit_margin)
     if err > config.ik_tolerance:  # the screening solved it; a miss here is a numerical fluke
@@ -267,31 +270,42 @@ def _cannot_point_down(arm: ArmSpec, radius: float) -> str:
     )
 
 
-def _candidate_mouths(
+def _candidates(
     shoulder: Tensor, radius: float, positions: Tensor, config: PlacementConfig
-) -> Tensor:
-    """Nominal mouths ``[C, 3]`` to try, preferred first: the preferred spot ``shoulder +
-    (rho R cos(a), rho R sin(a), -eta R)`` for azimuths a about the base's +x and fractions
-    (rho, eta) about the configured ones, nearest first; each spot as it is, then shifted so
-    that the positions' centre lies on it."""
-    centre = (positions.min(dim=0).values + positions.max(dim=0).values) / 2
-    grid = sorted(
-        (
-            (abs(a) / 45 + abs(r) / 0.1 + abs(e) / 0.1, a, r, e)
-            for a in _AZIMUTHS
-            for r in _STEPS
-            for e in _STEPS
-            if 0.1 <= config.reach_fraction + r <= 0.95
-        ),
+) -> tuple[Tensor, Tensor]:
+    """Nominal mouths ``[C, 3]`` to try, preferred first, and the start tip's offset from each
+    ``[C, 3]``.  A spot is ``shoulder + (rho R cos(a), rho R sin(a), -eta R)`` for azimuths a
+    about the base's +x and fractions (rho, eta) about the configured ones; each is tried as
+    it is, then shifted so that the positions' centre lies on it.  The start offset is turned
+    by a (so that "back" points towards the base), and scaled by f = 1, then 0.5 for arms too
+    short to lift the peg that high; the nearer (a, rho, eta, f) to (0, config, 1), the
+    earlier."""
+    centre = torch.nn.functional.pad(
+        (positions.min(dim=0).values + positions.max(dim=0).values) / 2, (0, 1)
     )
-    spots = []
-    for _, a, r, e in grid:
+    grid = sorted(
+        (abs(a) / 45 + abs(r) / 0.1 + abs(e) / 0.1 + (1 - f) / 0.25, a, r, e, f)
+        for a in _AZIMUTHS
+        for r in _STEPS
+        for e in _STEPS
+        for f in _START_SCALES
+        if 0.1 <= config.reach_fraction + r <= 0.95
+    )
+    mouths, starts = [], []
+    dx, dy, dz = config.start_offset
+    for _, a, r, e, f in grid:
         rho, eta = config.reach_fraction + r, config.mouth_below_shoulder + e
-        direction = (math.cos(math.radians(a)), math.sin(math.radians(a)))
-        spot = torch.tensor(
-            [rho * radius * direction[0], rho * radius * direction[1], -eta * radius],
+        c, s = math.cos(math.radians(a)), math.sin(math.radians(a))
+        spot = shoulder + torch.tensor(
+            [rho * radius * c, rho * radius * s, -eta * radius],
             dtype=torch.float64,
             device=shoulder.device,
         )
-        spots += [shoulder + spot, shoulder + spot - torch.nn.functional.pad(centre, (0, 1))]
-    return torch.stack(spots)
+        start = torch.tensor(
+            [f * (c * dx - s * dy), f * (s * dx + c * dy), f * dz],
+            dtype=torch.float64,
+            device=shoulder.device,
+        )
+        mouths += [spot, spot - centre]
+        starts += [start, start]
+    return torch.stack(mouths), torch.stack(starts)
