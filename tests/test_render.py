@@ -91,7 +91,7 @@ def decode(path: Path) -> list[np.ndarray]:
     if path.suffix == ".gif":
         frames = []
         with Image.open(path) as gif:
-            for index in range(gif.n_frames):
+            for index in range(getattr(gif, "n_frames", 1)):
                 gif.seek(index)
                 frames.append(np.asarray(gif.convert("RGB")))
         return frames
