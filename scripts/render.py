@@ -3,15 +3,16 @@
     python scripts/render.py --run DIR [--conditions all|0,3,...] [--who policy|controller|both]
                              [--out FILE.mp4|FILE.gif] [--size W H] [--fps F] [--every K]
                              [--view wide|mouth] [--layout grid|sequence] [--columns N]
-                             [--after K]
+                             [--after C]
 
-The final global policy (or the one checkpointed after condition K; and/or each condition's final local controller) runs once without
-noise at each chosen training position; PyBullet's CPU renderer then draws every K-th state
-from a fixed camera (wide: the hole and the peg's start; mouth: a close-up of the funnel, cut
-open on the camera's side). Each clip is captioned with its condition, hole offset, time,
-the tip's distance and its outcome (success or miss at its final distance); clips go side by
-side in a grid or one after another. Writes FILE (default DIR/videos/WHO-VIEW.mp4; an .mp4
-needs the ``video`` extra, a .gif only Pillow) and prints each clip's final distance.
+The final global policy (or the one checkpointed after condition C), and/or each condition's
+final local controller, runs once without noise at each chosen training position; PyBullet's
+CPU renderer then draws every K-th state from a fixed camera (wide: the hole and the peg's
+start; mouth: a close-up of the funnel, cut open on the camera's side). Each clip is
+captioned with its condition, hole offset, time, the tip's distance and its outcome (success
+or miss at its final distance); clips go side by side in a grid or one after another. Writes
+FILE (default DIR/videos/WHO-VIEW.mp4; an .mp4 needs the ``video`` extra, a .gif only
+Pillow) and prints each clip's final distance.
 """
 
 from __future__ import annotations

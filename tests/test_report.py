@@ -8,6 +8,8 @@ import runpy
 import sys
 from html.parser import HTMLParser
 from pathlib import Path
+from typing import Any
+from urllib.parse import unquote
 
 import pytest
 from PIL import Image
@@ -68,14 +70,14 @@ def make_run(folder: Path, finished: bool = True) -> None:
     }
     run = RunFolder(folder)
     run.start(config, urdf_text)
-    entries = [
+    entries: list[dict[str, Any]] = [
         {"condition": c, "offset": o, "iterations": 10 + c, "rollouts": 50, "first_success_iteration": 2,
          "local_final_distance": 0.0012, "policy_final_distance_after": 0.001 * (c + 1),
          "policy_success_after": True, "repairs": 0, "failure": None}
         for c, o in enumerate(CONDITIONS)
     ]  # fmt: skip
     for entry in entries[:2]:
-        run.write_entry(int(str(entry["condition"])), entry)
+        run.write_entry(entry["condition"], entry)
     if finished:
         for entry, end in zip(entries, (0.0011, 0.094, 0.0013), strict=True):
             entry.update(policy_final_distance_end=end, policy_success_end=end < 0.06)
@@ -91,7 +93,7 @@ def add_outputs(folder: Path) -> None:
     (folder / "retention.json").write_text(json.dumps(table))
     (folder / "videos").mkdir()
     (folder / "videos" / "policy-wide.mp4").write_bytes(b"\0" * 16)
-    Image.new("RGB", (8, 8)).save(folder / "videos" / "both-mouth.gif")
+    Image.new("RGB", (8, 8)).save(folder / "videos" / "both mouth.gif")
     (folder / "videos" / "notes.txt").write_text("not a video")
 
 
@@ -99,7 +101,7 @@ def check_links(folder: Path, page: Page) -> None:
     """Every link is a relative path inside the folder to a file that exists."""
     for link in page.links:
         assert "://" not in link and not link.startswith(("/", "..")), link
-        assert (folder / link).is_file(), link
+        assert (folder / unquote(link)).is_file(), link
 
 
 def test_the_report_links_exactly_the_files_the_folder_has(tmp_path: Path) -> None:
@@ -112,7 +114,7 @@ def test_the_report_links_exactly_the_files_the_folder_has(tmp_path: Path) -> No
     assert page.open == ["html"] or page.open == []  # every other tag closed in order
     check_links(folder, page)
     assert sorted(page.links) == sorted(
-        ["fig4.png", "retention.png", "videos/policy-wide.mp4", "videos/both-mouth.gif"]
+        ["fig4.png", "retention.png", "videos/policy-wide.mp4", "videos/both%20mouth.gif"]
     )
     rows = [cells for cells in page.cells if cells and cells[0] in ("0", "1", "2")]
     assert [r[:2] for r in rows] == [["0", "train0"], ["1", "train0"], ["2", "train1"]]

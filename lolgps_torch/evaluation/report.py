@@ -15,6 +15,7 @@ import json
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 from lolgps_torch.data.run_folder import RunFolder, atomic_write, flatten, read_json
 from lolgps_torch.evaluation.retention import forgotten
@@ -132,7 +133,7 @@ def _conditions(config: dict[str, Any], entries: list[dict[str, Any]]) -> str:
 
 def _figure(folder: Path, name: str, alt: str, command: str) -> str:
     if (folder / name).is_file():
-        return f'<p><img src="{html.escape(name)}" alt="{html.escape(alt)}"></p>'
+        return f'<p><img src="{html.escape(quote(name))}" alt="{html.escape(alt)}"></p>'
     return f"<p>Not made yet: <code>{html.escape(command)}</code>.</p>"
 
 
@@ -165,12 +166,12 @@ def _videos(folder: Path) -> str:
         return "<p>Not made yet: <code>python scripts/render.py --run DIR</code>.</p>"
     parts = []
     for name in found:
-        src = html.escape(name)
+        src = html.escape(quote(name))
         if name.lower().endswith(".gif"):
             media = f'<img src="{src}" alt="{src}">'
         else:
             media = f'<video src="{src}" controls loop muted playsinline></video>'
-        parts.append(f"<h3><code>{src}</code></h3><p>{media}</p>")
+        parts.append(f"<h3><code>{html.escape(name)}</code></h3><p>{media}</p>")
     return "".join(parts)
 
 
