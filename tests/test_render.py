@@ -210,8 +210,10 @@ def test_an_arm_without_shapes_is_drawn_as_capsules(tmp_path: Path) -> None:
         assert len(bodies) >= arm.dof  # a capsule per moving link at least
         camera = scene.camera((0.0, 0.0), np.zeros(arm.dof))  # upright, the peg on top
         rgb, segmentation = scene.photograph(camera, 160, 120)
+        peg = scene.peg_mask(segmentation)
     finally:
         scene.close()
+    assert peg.sum() > 20  # no capsule hides the peg (its tip frame gets none)
     drawn = np.isin(segmentation & ((1 << 24) - 1), list(bodies))
     assert drawn.sum() > 100
     shade = rgb[drawn].astype(float).mean(axis=0) / 255

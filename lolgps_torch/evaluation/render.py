@@ -297,7 +297,8 @@ class Scene:
 
     def _arm_parts(self) -> list[_Part]:
         """Colour the peg PEG and default-white links BARE_ARM; give each link that PyBullet
-        draws nothing for a capsule from its parent's frame to its own and a sphere there."""
+        draws nothing for (except the frames beyond the peg) a capsule from its parent's frame
+        to its own and a sphere there."""
         c, body = self.client, self.world.body
         drawn = set()
         for shape in pb.getVisualShapeData(body, physicsClientId=c):
@@ -307,7 +308,11 @@ class Scene:
                 pb.changeVisualShape(body, link, rgbaColor=PEG, physicsClientId=c)
             elif rgba == (1.0, 1.0, 1.0, 1.0):
                 pb.changeVisualShape(body, link, rgbaColor=BARE_ARM, physicsClientId=c)
-        bare = [j for j in range(pb.getNumJoints(body, physicsClientId=c)) if j not in drawn]
+        bare = [
+            j
+            for j in range(pb.getNumJoints(body, physicsClientId=c))
+            if j not in drawn and not self._beyond_peg(j)
+        ]
         if not bare:
             return []
         self.world.reset(np.zeros(self.world.arm.dof))
@@ -315,6 +320,14 @@ class Scene:
         reach = sum(float(np.linalg.norm(v)) for _, v in segments.values())
         radius = min(0.05, max(0.01, 0.04 * reach))
         return [self._capsule(j, *segments[j], radius) for j in bare]
+
+    def _beyond_peg(self, link: int) -> bool:
+        """Whether ``link`` hangs from the peg (its tip frame: the peg itself is drawn)."""
+        while link != -1:
+            link = pb.getJointInfo(self.world.body, link, physicsClientId=self.client)[16]
+            if link == self.peg_link:
+                return True
+        return False
 
     def _frame(self, link: int | None) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """World pose of a link's frame (-1 the base), or of the hole's frame for None."""
