@@ -3,7 +3,9 @@ training positions, drawn by PyBullet's CPU renderer (``ER_TINY_RENDERER``, head
 
 The rollouts run once, through the task's own sampler: the policy's as one batch, each local
 controller's ``u_t = K_t x_t + k_t`` alone, as the stream measures them, so a clip's final
-distance is the one ``summary.json`` records. A separate display :class:`Scene` (the run's arm
+distance is the one ``summary.json`` records (``policy_final_distance_end`` for the final
+policy; ``local_final_distance`` for the replay's p_cur, which labelled D_g, when it is the
+final iteration's: ``labels_from_iteration == iterations``). A separate display :class:`Scene` (the run's arm
 in its own client, with a coloured copy of the hole) is then posed from the recorded joint
 angles ``q_t`` of every ``every``-th state and photographed by a camera fixed per clip. No
 physics runs in the display.
@@ -14,7 +16,7 @@ frame to its own and a sphere at its joint, so an arm described without meshes i
 
 Views: ``wide`` frames the hole and the peg's start; ``mouth`` is a close-up of the funnel,
 cut open on the camera's side (the hole's shapes on that side are not drawn) so the peg can be
-seen pass the mouth, where the clearance per side is ``clearance_mouth`` (4 mm by default).
+seen passing the mouth, where the clearance per side is ``clearance_mouth`` (4 mm by default).
 """
 
 from __future__ import annotations
@@ -88,11 +90,6 @@ class RenderConfig:
                 "columns": self.columns >= 1,
             },
         )
-
-    @property
-    def frame_interval(self) -> float:
-        """Seconds per video frame."""
-        return 1.0 / self.fps
 
 
 class Clip(NamedTuple):
