@@ -112,6 +112,8 @@ def decode(path: Path) -> list[np.ndarray]:
 def test_a_short_render_decodes_with_the_peg_in_view(
     tiny_run: LoadedRun, tiny_task: PegTask, tmp_path: Path, suffix: str, config: RenderConfig
 ) -> None:
+    if suffix == ".mp4":
+        pytest.importorskip("imageio_ffmpeg")  # the video extra (in dev)
     out = tmp_path / f"clip{suffix}"
     clips = record_clips(tiny_run, tiny_task, [0, 1], config.who)
     render_clips(tiny_task, clips, config, out)
