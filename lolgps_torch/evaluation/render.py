@@ -21,6 +21,7 @@ seen passing the mouth, where the clearance per side is ``clearance_mouth`` (4 m
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -410,6 +411,7 @@ class Scene:
         self.world.close()
 
 
+@functools.cache
 def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
     return ImageFont.load_default(size=size)
 
