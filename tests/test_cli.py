@@ -128,7 +128,7 @@ def _run_stream(
             "[[0, 0]]",
             "error: StreamConfig.max_iterations = 0: out of range",
         ),
-        ([], "[[5.0, 0.0]]", "error: hole offset (+5.000, +0.000) m is out of the arm's reach"),
+        ([], "[[5.0, 0.0], [-5.0, 0.0]]", "error: the 2 hole positions (spread 10.00 m)"),
         (["--resume"], "[[0, 0]]", "error: --resume: "),
     ],
 )
