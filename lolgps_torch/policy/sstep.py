@@ -171,7 +171,7 @@ def distill(
 
     Steps: whitening, ``Sigma_pi`` and output scaling from the batch (:func:`set_statistics`);
     each row's constant part of the loss (:func:`_row_constants`); then ``config.steps``
-    ``torch.optim.Adam`` steps (fresh optimiser state, learning rate decayed along a cosine to
+    ``torch.optim.Adam`` (foreach) steps (fresh optimiser state, learning rate decayed along a cosine to
     5% of ``config.learning_rate``) on minibatches of ``config.batch_size`` rows drawn
     uniformly with replacement, from the current weights (the policy keeps what earlier
     S-steps taught it), on ``config.num_threads`` intra-op threads. Only the precision-weighted
