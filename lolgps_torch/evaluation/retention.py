@@ -42,6 +42,19 @@ def fit_error(
     return (d.mT @ prec @ d).flatten(-3).clamp_min(0.0).sqrt()
 
 
+def fit_by_window(policy: GaussianPolicy, loaded: LoadedRun, width: int = 10) -> list[float]:
+    """The mean of :func:`fit_error` over every condition's D_g, per window of ``width`` time
+    steps (``ceil(T / width)`` floats)."""
+    errors = [
+        fit_error(policy, r.samples.x, r.samples.mean_cur, r.samples.prec_cur)
+        for r in loaded.records
+        if r.samples.x.shape[0] > 0
+    ]
+    if not errors:
+        return []
+    return [float(w.mean()) for w in torch.cat(errors).mean(0).split(width)]
+
+
 def retention(loaded: LoadedRun) -> dict[str, Any]:
     """The run's retention tables (module docstring) as JSON-able data."""
     offsets = [r.offset for r in loaded.records]

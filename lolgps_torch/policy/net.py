@@ -38,12 +38,13 @@ class PolicyConfig:
 
     hidden_sizes: tuple[int, ...] = (42, 42, 42, 42)
     learning_rate: float = 3e-3
-    batch_size: int = 128
-    steps: int = 3000
+    batch_size: int = 512
+    steps: int = 1000
     std_floor: float = 1e-3
     seed: int = 0
     pre_weight: float = 0.1
     num_threads: int | None = 1
+    feedback: bool = True
 
     def __post_init__(self) -> None:
         check_fields(
@@ -112,7 +113,11 @@ class GaussianPolicy(torch.nn.Module):
         self.config = config if config is not None else PolicyConfig()
         self.dX, self.dU = dX, dU
         generator = torch.Generator().manual_seed(self.config.seed)
-        self.net: torch.nn.Module = _mlp(dX, dU, self.config.hidden_sizes, generator)
+        self.net: torch.nn.Sequential = _mlp(dX, dU, self.config.hidden_sizes, generator)
+        self.gain = torch.nn.Linear(self.config.hidden_sizes[-1], dU * dX, dtype=torch.float64)
+        torch.nn.init.zeros_(self.gain.weight)
+        torch.nn.init.zeros_(self.gain.bias)
+        self.gain.requires_grad_(self.config.feedback)
         self.register_buffer("x_mean", torch.zeros(dX, dtype=torch.float64))
         self.register_buffer("x_std", torch.ones(dX, dtype=torch.float64))
         self.register_buffer("u_mean", torch.zeros(dU, dtype=torch.float64))
@@ -123,7 +128,17 @@ class GaussianPolicy(torch.nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """Action mean ``mu_theta(x)``: ``[..., dX] -> [..., dU]``."""
-        return torch.addcmul(self.u_mean, self.net((x - self.x_mean) / self.x_std), self.u_scale)
+        return torch.addcmul(
+            self.u_mean, self.unscaled((x - self.x_mean) / self.x_std), self.u_scale
+        )
+
+    def unscaled(self, z: Tensor) -> Tensor:
+        """The net's output at whitened states ``z``, before the output scaling."""
+        if not self.config.feedback:
+            return self.net(z)
+        h = self.net[:-1](z)
+        gain = self.gain(h).unflatten(-1, (self.dU, self.dX))
+        return self.net[-1](h) + (gain @ z.unsqueeze(-1)).squeeze(-1)
 
     def covariance(self) -> Tensor:
         """``Sigma_pi = diag(sigma^2)``, ``[dU, dU]``."""
@@ -184,6 +199,7 @@ class GaussianPolicy(torch.nn.Module):
             policy = cls(int(description["dX"]), int(description["dU"]), PolicyConfig(**settings))
             # checkpoints from before the output scaling: scale 1, offset 0 is the same policy
             state = {"u_mean": policy.u_mean, "u_scale": policy.u_scale, **state}
+            state = {"gain.weight": policy.gain.weight, "gain.bias": policy.gain.bias, **state}
             policy.load_state_dict(state)
         except (KeyError, TypeError, ValueError, RuntimeError) as error:
             text = str(error).strip()

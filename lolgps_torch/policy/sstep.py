@@ -10,10 +10,8 @@ Layout: rows are states flattened over samples and time, ``[M, ...]``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -155,144 +153,12 @@ def _intra_op_threads(n: int | None) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-class Rows(NamedTuple):
-    """The batch as the Adam loop reads it: whitened states ``(x - x_mean) / x_std`` ``[M, dX]``,
-    the targets with ``P_pre`` zeroed where there is no p_pre, and each row's constant part of
-    the loss (:func:`_row_constants`), ``[M]``."""
-
-    x: Tensor
-    mean_cur: Tensor
-    prec_cur: Tensor
-    mean_pre: Tensor
-    prec_pre: Tensor
-    has_pre: Tensor
-    constant: Tensor
-
-
-def loss_rows(policy: GaussianPolicy, batch: DistillBatch, pre_weight: float) -> Rows:
-    """The batch's :class:`Rows` for ``policy``'s whitening and ``Sigma_pi``."""
+def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch) -> DistillBatch:
+    """The batch as the Adam loop reads it: states whitened, ``(x - x_mean) / x_std``, and
+    ``P_pre`` zeroed where there is no p_pre (so gathered rows need no mask)."""
     x = (batch.x - policy.x_mean) / policy.x_std
     prec_pre = torch.where(batch.has_pre[:, None, None], batch.prec_pre, 0.0)
-    constant = _row_constants(policy.covariance(), batch, pre_weight)
-    return Rows(
-        x, batch.mean_cur, batch.prec_cur, batch.mean_pre, prec_pre, batch.has_pre, constant
-    )
-
-
-def _quadratic_and_gradient(diff: Tensor, prec: Tensor, upstream: float) -> tuple[Tensor, Tensor]:
-    """``s = (d^T P) d`` per row, ``[B]``, and ``g ds/dd = (g d^T) P^T + g (d^T P)^T``,
-    ``[B, dU]``, for a scalar upstream gradient ``g``: the products autograd takes through
-    :func:`_quadratic`, in its order (its ``[B, 1, 1]`` products with ``g`` are single
-    multiplications, exact either way)."""
-    row, column = diff.unsqueeze(-2), diff.unsqueeze(-1)  # [B, 1, dU], [B, dU, 1]
-    left = row @ prec  # d^T P, [B, 1, dU]
-    grad = (row * upstream) @ prec.mT + left * upstream  # [B, 1, dU]
-    return (left @ column).flatten(), grad.squeeze(-2)
-
-
-def minibatch_loss(mean: Tensor, rows: Rows, pre_weight: float) -> tuple[Tensor, Tensor]:
-    """The minibatch loss of :func:`kl_loss`, ``L = 1/B sum_rows [const + 1/2 (d_cur^T P_cur
-    d_cur + lambda has_pre d_pre^T P_pre d_pre)]`` with ``d = mu - mu_target``, and ``dL/dmu``
-    ``[B, dU]``, in the arithmetic of ``loss.backward()`` through :func:`_row_quadratics`
-    (so the S-step's results are bitwise those of autograd)."""
-    scale = 1.0 / mean.shape[0] * 0.5  # d mean / d row, times the 1/2
-    cur, grad_cur = _quadratic_and_gradient(mean - rows.mean_cur, rows.prec_cur, scale)
-    has_pre = rows.has_pre[:, None]
-    diff_pre = torch.where(has_pre, mean - rows.mean_pre, 0.0)
-    pre, grad_pre = _quadratic_and_gradient(diff_pre, rows.prec_pre, scale * pre_weight)
-    loss = (0.5 * (cur + pre_weight * pre) + rows.constant).mean()
-    return loss, grad_cur + torch.where(has_pre, grad_pre, 0.0)
-
-
-class FlatMLP:
-    """The policy's ``Linear, ReLU, ..., Linear`` net with its weights in one flat vector and its
-    gradient by hand (backpropagation), with no autograd graph:
-
-        ``h_0 = x,  h_{l+1} = relu(h_l W_l^T + b_l),  mu = h_L W_L^T + b_L``;
-        from ``g_L = dL/dmu``:  ``dL/dW_l = g_l^T h_l``,  ``dL/db_l = sum_rows g_l``,
-        ``g_{l-1} = (g_l W_l) [h_l > 0]``.
-
-    ``flat`` and ``grad`` are ``[n_weights]``; the layers' weights are views into them, so one
-    optimiser update of ``flat`` updates every layer. :meth:`write_back` copies them to the net.
-    """
-
-    def __init__(self, net: torch.nn.Module) -> None:
-        modules = list(net.children())
-        kinds = [torch.nn.Linear if i % 2 == 0 else torch.nn.ReLU for i in range(len(modules))]
-        if len(modules) % 2 == 0 or not all(map(isinstance, modules, kinds)):
-            raise LolgpsError(f"the S-step needs a Linear, ReLU, ..., Linear net, got {net}")
-        self.layers = [m for m in modules[0::2] if isinstance(m, torch.nn.Linear)]
-        tensors = [t for layer in self.layers for t in (layer.weight, layer.bias)]
-        self.flat = torch.cat([t.detach().flatten() for t in tensors])
-        self.grad = torch.zeros_like(self.flat)
-        params, grads, start = [], [], 0
-        for t in tensors:
-            params.append(self.flat[start : start + t.numel()].view_as(t))
-            grads.append(self.grad[start : start + t.numel()].view_as(t))
-            start += t.numel()
-        self.weights, self.biases = params[0::2], params[1::2]
-        self.weight_grads, self.bias_grads = grads[0::2], grads[1::2]
-
-    def forward(self, x: Tensor) -> list[Tensor]:
-        """The activations ``[h_0, ..., h_L, mu]`` at ``x: [B, dX]``."""
-        activations = [x]
-        last = len(self.weights) - 1
-        for layer, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
-            h = torch.addmm(bias, activations[-1], weight.t())
-            activations.append(h if layer == last else h.relu_())
-        return activations
-
-    def backward(self, activations: list[Tensor], grad_mean: Tensor) -> None:
-        """Fill ``grad`` from :meth:`forward`'s activations and ``dL/dmu: [B, dU]``."""
-        g = grad_mean
-        for layer in range(len(self.weights) - 1, -1, -1):
-            h = activations[layer]
-            torch.mm(g.t(), h, out=self.weight_grads[layer])
-            torch.sum(g, 0, out=self.bias_grads[layer])
-            if layer > 0:
-                g = torch.ops.aten.threshold_backward(g.mm(self.weights[layer]), h, 0)
-
-    def write_back(self) -> None:
-        """Copy the flat weights into the net's parameters."""
-        for layer, weight, bias in zip(self.layers, self.weights, self.biases, strict=True):
-            layer.weight.copy_(weight)
-            layer.bias.copy_(bias)
-
-
-class Adam:
-    """Adam with torch's defaults (``beta = (0.9, 0.999)``, ``eps = 1e-8``) and the arithmetic of
-    ``torch.optim.Adam``, on one flat vector (one update for the whole net):
-
-        ``m <- beta1 m + (1 - beta1) g``,  ``v <- beta2 v + (1 - beta2) g^2``,
-        ``theta <- theta - lr_t / (1 - beta1^t) m / (sqrt(v) / sqrt(1 - beta2^t) + eps)``.
-    """
-
-    def __init__(self, like: Tensor, betas: tuple[float, float] = (0.9, 0.999)) -> None:
-        self.m, self.v = torch.zeros_like(like), torch.zeros_like(like)
-        self.betas, self.eps, self.t = betas, 1e-8, 0
-
-    def step(self, theta: Tensor, grad: Tensor, rate: float) -> None:
-        """Update ``theta`` in place from ``grad`` with learning rate ``rate``."""
-        beta1, beta2 = self.betas
-        self.t += 1
-        self.m.lerp_(grad, 1 - beta1)
-        self.v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-        denom = (self.v.sqrt() / (1 - beta2**self.t) ** 0.5).add_(self.eps)
-        theta.addcdiv_(self.m, denom, value=-rate / (1 - beta1**self.t))
-
-
-def cosine_rates(config: PolicyConfig) -> list[float]:
-    """Learning rate of each Adam step, a cosine from ``config.learning_rate`` down towards
-    ``lr_min`` = 5% of it, ``lr_t = lr_min + (lr - lr_min) (1 + cos(pi t / steps)) / 2``, in the
-    recursive form of ``torch.optim.lr_scheduler.CosineAnnealingLR`` (the same floats):
-    ``lr_t = (1 + cos(pi t / steps)) / (1 + cos(pi (t - 1) / steps)) (lr_{t-1} - lr_min) + lr_min``.
-    """
-    rate, floor, steps = config.learning_rate, 0.05 * config.learning_rate, config.steps
-    rates = [rate][:steps]
-    for t in range(1, steps):
-        ratio = (1 + math.cos(math.pi * t / steps)) / (1 + math.cos(math.pi * (t - 1) / steps))
-        rates.append(ratio * (rates[-1] - floor) + floor)
-    return rates
+    return batch._replace(x=x, prec_pre=prec_pre)
 
 
 def distill(
@@ -304,17 +170,14 @@ def distill(
     """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8).
 
     Steps: whitening, ``Sigma_pi`` and output scaling from the batch (:func:`set_statistics`);
-    each row's constant part of the loss (:class:`Rows`); then ``config.steps`` :class:`Adam`
-    steps (fresh optimiser state, learning rate decayed along a cosine to 5% of
-    ``config.learning_rate``, :func:`cosine_rates`) on minibatches of ``config.batch_size`` rows
-    drawn uniformly with replacement, from the current weights (the policy keeps what earlier
+    each row's constant part of the loss (:func:`_row_constants`); then ``config.steps``
+    ``torch.optim.Adam`` (foreach) steps (fresh optimiser state, learning rate decayed along a cosine to
+    5% of ``config.learning_rate``) on minibatches of ``config.batch_size`` rows drawn
+    uniformly with replacement, from the current weights (the policy keeps what earlier
     S-steps taught it), on ``config.num_threads`` intra-op threads. Only the precision-weighted
-    regression term depends on theta; its gradient in ``mu`` (:func:`minibatch_loss`) is
-    backpropagated by hand (:class:`FlatMLP`), with the products autograd would take, so the
-    weights and losses are bitwise those of autograd, ``torch.optim.Adam`` and
-    ``CosineAnnealingLR`` on :func:`kl_loss`, in ~1/4 of the time (no graph, one optimiser
-    update for the whole net). The loss recorded per step is the full KL loss of that
-    minibatch. Marks the policy trained. Deterministic for a given ``generator`` state.
+    regression term (:func:`_row_quadratics`) depends on theta; autograd differentiates it.
+    The loss recorded per step is the full KL loss of that minibatch. Marks the policy
+    trained. Deterministic for a given ``generator`` state.
 
     :param policy: the global policy, trained in place.
     :param batch: successful states with their targets (detached here).
@@ -329,20 +192,23 @@ def distill(
     set_statistics(policy, batch, config.pre_weight)
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
     history = batch.x.new_empty(config.steps)
-    with _intra_op_threads(config.num_threads), torch.no_grad():
-        rows_all = loss_rows(policy, batch, config.pre_weight)
-        net = FlatMLP(policy.net)
-        adam = Adam(net.flat)
-        for step, (rows, rate) in enumerate(
-            zip(draws.to(batch.x.device), cosine_rates(config), strict=True)
-        ):
-            minibatch = Rows(*(field.index_select(0, rows) for field in rows_all))
-            activations = net.forward(minibatch.x)
-            mean = torch.addcmul(policy.u_mean, activations[-1], policy.u_scale)
-            loss, grad_mean = minibatch_loss(mean, minibatch, config.pre_weight)
-            history[step] = loss
-            net.backward(activations, grad_mean * policy.u_scale)
-            adam.step(net.flat, net.grad, rate)
-        net.write_back()
+    weights = [w for w in policy.parameters() if w.requires_grad]
+    optimiser = torch.optim.Adam(weights, lr=config.learning_rate, foreach=True)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimiser, config.steps, eta_min=0.05 * config.learning_rate
+    )
+    with _intra_op_threads(config.num_threads):
+        with torch.no_grad():
+            constant = _row_constants(policy.covariance(), batch, config.pre_weight)
+            rows_all = _sgd_rows(policy, batch)
+        for step, index in enumerate(draws.to(batch.x.device)):
+            rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
+            mean = torch.addcmul(policy.u_mean, policy.unscaled(rows.x), policy.u_scale)
+            loss = _row_quadratics(mean, rows, config.pre_weight).mean()
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            schedule.step()
+            history[step] = loss.detach() + constant.index_select(0, index).mean()
     policy.trained = True
     return history.tolist()

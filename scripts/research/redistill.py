@@ -25,6 +25,7 @@ from lolgps_torch.cli import run
 from lolgps_torch.data.checkpoint import save_policy
 from lolgps_torch.data.run import LoadedRun, load_run
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.evaluation.retention import fit_by_window
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill, policy_actor
 
 
@@ -53,6 +54,7 @@ def parse_args() -> argparse.Namespace:
         "--jitter", type=float, default=0.004, help="offset (m) of the extra test positions"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--feedback", action="store_true")
     parser.add_argument("--out", default=None, help="folder to save the policy in")
     args = parser.parse_args()
     if args.steps < 1 or args.width < 1 or args.layers < 1 or args.batch_size < 1:
@@ -78,6 +80,7 @@ def policy_config(args: argparse.Namespace, loaded: LoadedRun) -> PolicyConfig:
         batch_size=args.batch_size,
         learning_rate=args.lr,
         seed=args.seed,
+        feedback=args.feedback,
     )
 
 
@@ -122,6 +125,8 @@ def main() -> None:
         f"fitted {batch.M} rows in {seconds:.1f}s; loss {losses[0]:.1f} -> "
         f"{sum(tail) / len(tail):.1f} (mean of the last {len(tail)} steps)"
     )
+    fit = " ".join(f"{v:.1f}" for v in fit_by_window(policy, loaded))
+    print(f"fit on D_g in teacher standard deviations, per 10 steps: {fit}")
     if args.out:
         save_policy(args.out, policy)
     test_around(loaded, policy, args.jitter)
