@@ -128,7 +128,11 @@ def _run_stream(
             "[[0, 0]]",
             "error: StreamConfig.max_iterations = 0: out of range",
         ),
-        ([], "[[5.0, 0.0]]", "error: hole offset (+5.000, +0.000) m is out of the arm's reach"),
+        (
+            [],
+            "[[5.0, 0.0]]",
+            "error: the 1 hole positions (spread 0.00 m) and the start pose do not fit in the reach",
+        ),
         (["--resume"], "[[0, 0]]", "error: --resume: "),
     ],
 )
