@@ -244,3 +244,19 @@ def test_control_step_gradients_match_finite_differences() -> None:
     q, qd, u = (torch.as_tensor(a) for a in _random_states(arm, 1, seed=5))
     x = torch.cat([q, 0.3 * qd, torch.as_tensor(rng.normal(size=(1, 12)))], -1)
     assert torch.autograd.gradcheck(step, (x.requires_grad_(), (2 * u).requires_grad_()))
+
+
+def test_linearize_is_the_jacobian_of_the_step() -> None:
+    """``ControlStep.linearize`` (Jacobian over q, qd, u, point columns filled in) equals the
+    full autograd Jacobian of f, and ``F [x; u] + f0 = f(x, u)``."""
+    arm = load_arm(ARMS["kuka"])
+    step = ControlStep(arm, WorldConfig(substeps=2))
+    q, qd, u = (torch.as_tensor(a) for a in _random_states(arm, 2, seed=6))
+    rng = np.random.default_rng(7)
+    x = torch.cat([q, 0.3 * qd, torch.as_tensor(rng.normal(size=(2, 12)))], -1)
+    F, f0 = step.linearize(x, u)
+    for i in range(2):
+        Jx, Ju = torch.autograd.functional.jacobian(step, (x[i], u[i]))
+        torch.testing.assert_close(F[i], torch.cat([Jx, Ju], -1), rtol=1e-9, atol=1e-9)
+    xu = torch.cat([x, u], -1)
+    torch.testing.assert_close((F @ xu[..., None]).squeeze(-1) + f0, step(x, u))

@@ -62,8 +62,45 @@ class ControlStep:
 
     def __call__(self, x: Tensor, u: Tensor) -> Tensor:
         """The next state ``[..., dX]`` from states ``x: [..., dX]`` and actions ``u: [..., dU]``."""
-        lay, dyn = self.layout, self.dynamics
-        q, qd = x[..., lay.q], x[..., lay.qd]
+        lay = self.layout
+        q, qd, moved = self._advance(x[..., lay.q], x[..., lay.qd], u)
+        return torch.cat([q, qd, x[..., lay.points] + moved, moved / self.config.dt], -1)
+
+    def linearize(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """``f(x, u) ~ F [x; u] + f0`` at states ``x: [B, dX]`` and actions ``u: [B, dU]``:
+        ``F = df/d[x; u]: [B, dX, dX+dU]`` by reverse-mode autograd, ``f0 = f(x, u) - F [x; u]``.
+
+        Only q, qd and u move the arm, so the Jacobian of ``(q', qd', P(q') - P(q))`` is taken
+        over those 3n inputs; the point columns are the identity (``p' = p + ...``) and the
+        point-velocity columns zero.
+        """
+        lay, n = self.layout, self.layout.n_joints
+        inputs = torch.cat([x[:, lay.q], x[:, lay.qd], u], -1)  # [B, 3n]
+
+        with torch.enable_grad():
+            z = inputs.detach().requires_grad_()
+            q, qd, delta = self._advance(z[:, :n], z[:, n : 2 * n], z[:, 2 * n :])
+            out = torch.cat([q, qd, delta], -1)  # [B, 2n + 6]
+            # one reverse pass per output row, batched: rows of eye as the cotangents
+            eye = torch.eye(out.shape[-1], dtype=x.dtype, device=x.device)
+            cotangents = eye[:, None, :].expand(-1, out.shape[0], -1)
+            (rows,) = torch.autograd.grad(out, z, cotangents, is_grads_batched=True)
+        J = rows.transpose(0, 1)  # [B, 2n + 6, 3n]
+        B, dX = x.shape[0], lay.dX
+        F = x.new_zeros(B, dX, dX + n)
+        joint_cols = list(range(2 * n)) + list(range(dX, dX + n))  # q, qd and u columns
+        F[:, : 2 * n, joint_cols] = J[:, : 2 * n]
+        F[:, lay.points, joint_cols] = J[:, 2 * n :]
+        F[:, lay.points, lay.points] = torch.eye(6, dtype=x.dtype, device=x.device)
+        F[:, lay.point_velocities, joint_cols] = J[:, 2 * n :] / self.config.dt
+        xu = torch.cat([x, u], -1)
+        f0 = self(x, u) - (F @ xu[..., None]).squeeze(-1)
+        return F, f0
+
+    def _advance(self, q: Tensor, qd: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Joint positions and velocities after one control step, and the points' move
+        ``P(q') - P(q): [..., 6]``."""
+        dyn = self.dynamics
         frames = dyn.frames(q)
         start = dyn.points(frames).flatten(-2)  # [..., 6]
         zeros = torch.zeros_like(q)
@@ -76,9 +113,7 @@ class ControlStep:
             qdd = dyn.forward_dynamics_at(frames, qd, tau - dyn.joint_damping * qd, wrench)
             qd = qd + self.h * qdd
             q = q + self.h * qd
-        moved = dyn.points(dyn.frames(q)).flatten(-2) - start
-        points = x[..., lay.points] + moved
-        return torch.cat([q, qd, points, moved / self.config.dt], -1)
+        return q, qd, dyn.points(dyn.frames(q)).flatten(-2) - start
 
 
 def stabilising_inertia(dynamics: ArmDynamics, config: WorldConfig) -> list[float]:
