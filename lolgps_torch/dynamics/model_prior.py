@@ -1,5 +1,5 @@
 """Normal-inverse-Wishart prior per time step from a model of the dynamics (docs/ALGORITHM.md
-section 4.4): the arm's free-space step ``x' = f(x, u)`` linearised at each step's samples.
+section 4.1): the arm's free-space step ``x' = f(x, u)`` linearised at each step's samples.
 
 Layout as in :mod:`lolgps_torch.dynamics.prior`: samples ``X: [N, T, dA]`` (``X = [x_t; u_t]``),
 ``Y: [N, T, dB]`` (``Y = x_{t+1}``), the prior time-first with ``D = dA + dB``.
