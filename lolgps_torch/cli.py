@@ -12,6 +12,7 @@ import re
 import sys
 import types
 import typing
+import warnings
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +21,7 @@ from typing import Any, Literal
 import torch
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.task import TaskConfig
 
 Position = tuple[float, float]
@@ -159,8 +161,6 @@ def task_config(args: argparse.Namespace) -> TaskConfig:
     """The :class:`TaskConfig` the arm flags describe, its values checked."""
     if args.descent_height < 0.0 or args.descent_steps < 0:
         raise LolgpsError("--descent-height and --descent-steps must be >= 0")
-    if args.friction < 0.0:
-        raise LolgpsError(f"--friction {args.friction}: must be >= 0")
     config: TaskConfig = TASK_FLAGS.build(args)
     return dataclasses.replace(config, urdf=args.urdf)
 
@@ -194,6 +194,17 @@ def read_offsets(path: str, flag: str) -> list[Position]:
     return offsets
 
 
+_default_showwarning = warnings.showwarning
+
+
+def _show_warning(message: Warning | str, category: type[Warning], *args: Any, **kw: Any) -> None:
+    """An :class:`ArmWarning` as one ``warning:`` line; other warnings as Python prints them."""
+    if issubclass(category, ArmWarning):
+        print(f"warning: {message}", file=sys.stderr)
+    else:
+        _default_showwarning(message, category, *args, **kw)
+
+
 def run(main: Callable[[], None]) -> None:
     """Run a script's main: a :class:`LolgpsError` becomes one ``error:`` line and exit 2.
 
@@ -201,6 +212,7 @@ def run(main: Callable[[], None]) -> None:
     small, and a second thread only contends with the simulator and with parallel workers.
     """
     torch.set_num_threads(int(os.environ.get("LOLGPS_THREADS", "1")))
+    warnings.showwarning = _show_warning
     try:
         main()
     except LolgpsError as exc:

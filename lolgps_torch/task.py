@@ -5,6 +5,7 @@ Conditions are planar hole offsets ``(dx, dy)`` (m) from the nominal hole positi
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,14 +30,33 @@ from lolgps_torch.types import Trajectories
 @dataclass(frozen=True)
 class TaskConfig:
     """Everything that defines the task.  :param urdf: path of the arm's URDF.
-    :param ee_link: end-effector link (detected when None)."""
+    :param ee_link: end-effector link (detected when None).
+    :param package_path: folders searched for the ROS packages that ``package://`` mesh URIs
+        name, after the URDF's ancestors and ROS_PACKAGE_PATH."""
 
     urdf: str
     ee_link: str | None = None
+    package_path: tuple[str, ...] = ()
     peg: PegConfig = field(default_factory=PegConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
     placement: PlacementConfig = field(default_factory=PlacementConfig)
     cost: CostConfig = field(default_factory=CostConfig)
+
+    def __post_init__(self) -> None:
+        if self.ee_link is not None and not self.ee_link:
+            raise LolgpsError("--ee-link must name a link")
+        for folder in self.package_path:
+            if not os.path.isdir(folder):
+                raise LolgpsError(f"--package-path {folder}: not a folder")
+        parts = (
+            ("peg", PegConfig),
+            ("world", WorldConfig),
+            ("placement", PlacementConfig),
+            ("cost", CostConfig),
+        )
+        for name, kind in parts:
+            if not isinstance(getattr(self, name), kind):
+                raise LolgpsError(f"task {name} settings must be a {kind.__name__}")
 
 
 class PegTask:
@@ -45,11 +65,13 @@ class PegTask:
     def __init__(self, config: TaskConfig, n_worlds: int = 5, device: str = "cpu") -> None:
         self.config = config
         self.device = torch.device(device)
-        self.arm: ArmSpec = load_arm(config.urdf, config.ee_link, config.peg)
+        self.arm: ArmSpec = load_arm(config.urdf, config.ee_link, config.peg, config.package_path)
         self.layout = StateLayout(self.arm.dof)
         self.kinematics = PegKinematics(self.arm, self.device)
         try:  # an arm the loader accepts can still be one no pose or simulation works for
-            self.geometry = place_task(self.arm, self.kinematics, config.placement)
+            self.geometry = place_task(
+                self.arm, self.kinematics, config.placement, config.world.depth
+            )
             self.sampler = Sampler(
                 self.arm,
                 config.world,

@@ -30,11 +30,11 @@ from lolgps_torch.evaluation.square import SquareConfig
 from lolgps_torch.evaluation.table import format_table
 
 
-def main() -> None:
+def make_parser(defaults: AreaConfig) -> argparse.ArgumentParser:
+    """The flags, with the area defaults of ``defaults`` in their help."""
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    defaults = AreaConfig()
     parser.add_argument("--run", required=True, help="run folder (with config.json, checkpoints/)")
     parser.add_argument("--workers", type=int, default=2, help="rollout processes (default 2)")
     parser.add_argument("--positions", default=None, help="JSON list of [dx, dy] to evaluate")
@@ -81,7 +81,12 @@ def main() -> None:
         help="roll out on Ray actors instead of processes: alone, a local instance of --workers "
         "CPUs; with an address (e.g. auto), that cluster (needs pip install -e '.[ray]')",
     )
-    args = parser.parse_args()
+    return parser
+
+
+def main() -> None:
+    defaults = AreaConfig()
+    args = make_parser(defaults).parse_args()
     if args.workers < 1:
         raise LolgpsError(f"--workers {args.workers}: must be at least 1")
     if args.ray is not None:

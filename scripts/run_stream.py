@@ -10,7 +10,8 @@ It writes into --out: config.json, arm.urdf (the arm's URDF, so the folder stand
 metrics.jsonl (one line per iteration, with phase times), replay.h5 (the successful
 trajectories D_g of every condition), checkpoints/after_condition_XXX/ (the global policy after
 each condition) and summary.json, and prints a table at the end. Every flag, the output folder
-and the reachability of every hole offset are checked before anything is written. An
+and the reachability of every hole offset (the hole is placed so that all are reachable)
+are checked before anything is written. An
 interrupted run continues from its last completed condition with --resume.
 """
 
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import torch
@@ -153,8 +154,9 @@ def plan_run(args: argparse.Namespace) -> Plan:
         conditions, stages = square_stream(SquareConfig(count=args.count), args.seed)
     else:
         conditions, stages = default_training_stream(AreaConfig(), args.seed)
+    task = replace(task, placement=replace(task.placement, positions=tuple(conditions)))
     folder = RunFolder(args.out or os.path.join("runs", f"{args.method}-seed{args.seed}"))
-    urdf_text = portable_urdf(args.urdf)
+    urdf_text = portable_urdf(args.urdf, task.package_path)
     config = as_stored(
         {
             "method": args.method,
@@ -244,9 +246,7 @@ def main() -> None:
     args = parse_args()
     plan = plan_run(args)
     task = PegTask(plan.task, n_worlds=plan.stream.local.samples, device=str(plan.device))
-    try:
-        for offset in plan.conditions:
-            task.check_reachable(offset)
+    try:  # the task's placement has checked every condition's reachability
         if not args.resume:
             plan.folder.start(plan.config, plan.urdf_text)
         summary = learn(plan, task)

@@ -12,7 +12,7 @@ reachability are checked) and, at the end, summary.json.
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import torch
 
@@ -84,14 +84,14 @@ def main() -> None:
     device = check_device(args.device)
     config: LocalConfig = LOCAL_FLAGS.build(args)
     tcfg, offset = task_config(args), (float(args.hole[0]), float(args.hole[1]))
-    folder, urdf_text = RunFolder(args.out), portable_urdf(args.urdf)
+    tcfg = replace(tcfg, placement=replace(tcfg.placement, positions=(offset,)))
+    folder, urdf_text = RunFolder(args.out), portable_urdf(args.urdf, tcfg.package_path)
     if folder.has_config():
         raise LolgpsError(f"{folder.path} already holds a run; choose another --out")
     folder.check_writable()
     torch.manual_seed(args.seed)
     task = PegTask(tcfg, n_worlds=config.samples, device=str(device))
-    try:
-        task.check_reachable(offset)
+    try:  # the placement has checked that the hole is reachable
         settings = {"hole": list(offset), "seed": args.seed, "iterations": args.iterations}
         record = {**settings, "task": task_json(tcfg, urdf_text), "local": asdict(config)}
         folder.start(as_stored(record), urdf_text)

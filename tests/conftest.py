@@ -1,10 +1,26 @@
-"""Fixtures shared across test modules."""
+"""Fixtures shared across test modules, and how the suite runs in parallel.
+
+The suite runs on pytest-xdist workers (``-n auto --dist loadgroup`` in pyproject.toml), each
+test process with one torch thread: the workers are the parallelism, and a second intra-op
+thread per process only spins against them (on a busy 2-core machine a C-step then takes
+several times as long). A test that uses one of the expensive shared fixtures in
+``SHARED_FIXTURES`` is put in that fixture's ``xdist_group``, so all its users run on the
+worker that built it; a shared fixture is also built once per session under a file lock
+(``shared_dir``), whichever worker asks first, so it stays built once when its users are
+split across workers.
+"""
 
 from __future__ import annotations
 
+import os
+
+os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported; inherited by subprocesses
+
+import fcntl
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -21,6 +37,38 @@ SMALL = [
     "0",
 ]
 CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
+# fixture name -> xdist group of the tests that use it
+SHARED_FIXTURES = {"ci_stream": "ci_stream", "local_ray": "ray"}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Group the users of each shared fixture, and run the groups first: they are the longest
+    chains of work, so starting them early keeps the other workers busy until the end."""
+    grouped = []
+    for item in items:
+        groups = [g for f, g in SHARED_FIXTURES.items() if f in getattr(item, "fixturenames", ())]
+        if groups:
+            item.add_marker(pytest.mark.xdist_group(groups[0]))
+            grouped.append(item)
+    items[:] = grouped + [item for item in items if item not in grouped]
+
+
+def shared_dir(
+    tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], None]
+) -> Path:
+    """``<root>/<name>``, built by ``build(path)`` once per session: under xdist ``<root>`` is
+    the directory all workers' temporary directories share, and the first worker to ask
+    builds it while holding a lock the others wait on."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    path = root / name
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (root / f"{name}.done").exists():
+            path.mkdir(exist_ok=True)
+            build(path)
+            (root / f"{name}.done").touch()
+    return path
 
 
 def ci_stream_command(tmp: Path, out: Path) -> list[str]:
@@ -33,12 +81,14 @@ def ci_stream_command(tmp: Path, out: Path) -> list[str]:
             "--out", str(out)]  # fmt: skip
 
 
-@pytest.fixture(scope="package")
-def ci_stream(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One uninterrupted run of the CI-sized stream for the whole suite: ``<tmp>/run``."""
-    tmp = tmp_path_factory.mktemp("stream")
+def _run_ci_stream(tmp: Path) -> None:
     proc = subprocess.run(
         ci_stream_command(tmp, tmp / "run"), capture_output=True, text=True, timeout=900
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    return tmp
+
+
+@pytest.fixture(scope="session")
+def ci_stream(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One uninterrupted run of the CI-sized stream for the whole suite: ``<tmp>/run``."""
+    return shared_dir(tmp_path_factory, "ci_stream", _run_ci_stream)

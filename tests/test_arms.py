@@ -1,10 +1,16 @@
-"""Any URDF arm: the loader's description, other arms' kinematics, and one-line errors."""
+"""Any URDF arm: the loader's description, other arms' kinematics, and one-line errors; the
+corpus of published descriptions (``tests/data/arms`` and pybullet_data) loads, agrees with
+PyBullet, places the default stream and runs an iteration."""
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import subprocess
 import sys
+import warnings
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -12,14 +18,41 @@ import pybullet_data
 import pytest
 import torch
 
-from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+from lolgps_torch.robot.arm import PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.placement import PlacementConfig
+from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
+from lolgps_torch.task import PegTask, TaskConfig
 
 DATA = pybullet_data.getDataPath()
 XARM = os.path.join(DATA, "xarm/xarm6_robot.urdf")
 PANDA = os.path.join(DATA, "franka_panda/panda.urdf")
+ARMS = Path(__file__).resolve().parent / "data" / "arms"
+TROSSEN = ARMS / "trossen_descriptions" / "urdf"
+# published descriptions, as published: name -> (URDF, degrees of freedom)
+CORPUS = {
+    "pybullet-panda": (PANDA, 7),
+    "pybullet-xarm6": (XARM, 6),
+    "pybullet-kuka-iiwa": (os.path.join(DATA, "kuka_iiwa/model.urdf"), 7),
+    "rtb-xarm6": (str(ARMS / "armer_xarm/data/xacro/robots/xarm6/xarm6.urdf"), 6),
+    "rtb-vx300s": (str(TROSSEN / "vx300s.urdf"), 6),
+    "rtb-wx250s": (str(TROSSEN / "wx250s.urdf"), 6),
+    "rtb-wx200": (str(TROSSEN / "wx200.urdf"), 5),
+    "rtb-px150": (str(TROSSEN / "px150.urdf"), 5),
+}
+# published descriptions that cannot do the task, and the flag or element their error names
+REFUSED = {
+    "rtb-irb140": (ARMS / "abb_irb140_description/urdf/irb140.urdf", "link 'link_1': <inertial>"),
+    "rtb-kr16": (ARMS / "kuka_description/kuka_kr16/urdf/kr16_2.urdf", "joint 'joint_a1'"),
+    "rtb-px100": (TROSSEN / "px100.urdf", "--peg-length"),
+    "rtb-al5d": (ARMS / "lynxmotion_al5d_description/urdf/al5d_robot.urdf", "--peg-length"),
+}
+PAPER_STREAM = tuple(default_training_stream(AreaConfig(), 0)[0])
 
 LINK = '<link name="{n}"><inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>'
 JOINT = (
@@ -157,3 +190,227 @@ def test_ee_link_not_downstream_of_an_actuated_joint(tmp_path: Path) -> None:
 def _write(tmp: Path, name: str, text: str) -> str:
     (tmp / name).write_text(text)
     return str(tmp / name)
+
+
+def _fk_gap(task: PegTask, poses: int = 5) -> float:
+    """Largest |pytorch-kinematics - PyBullet| peg point difference (m) at random poses."""
+    world, arm = task.sampler.worlds[0], task.arm
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for _ in range(poses):
+        q = rng.uniform(arm.lower, arm.upper)
+        world.reset(q)
+        fk = task.kinematics.points(torch.tensor(q)).numpy()
+        worst = max(worst, float(np.abs(fk - world.points()).max()))
+    return worst
+
+
+@pytest.mark.parametrize("name", sorted(CORPUS))
+def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
+    """Loaded as published (``package://`` meshes absent: warned, not refused), the kinematics
+    agree with PyBullet, the hole is placed so that the whole default stream is reachable, and
+    one iteration of the trajectory-centric loop runs (a short episode)."""
+    urdf, dof = CORPUS[name]
+    config = TaskConfig(
+        urdf=urdf, world=WorldConfig(T=10), placement=PlacementConfig(positions=PAPER_STREAM)
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        task = PegTask(config, n_worlds=2)
+    try:
+        assert task.arm.dof == dof
+        assert _fk_gap(task) < 1e-6
+        for offset in PAPER_STREAM:
+            task.check_reachable(offset)
+        learner = LocalLearner(task, PAPER_STREAM[0], LocalConfig(samples=2), seed=0)
+        samples, _, record = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
+        assert torch.isfinite(samples.cost).all() and np.isfinite(record.mean_cost)
+    finally:
+        task.close()
+
+
+@pytest.mark.parametrize("name", sorted(REFUSED))
+def test_published_arm_that_cannot_do_the_task_gets_one_error_line(
+    name: str, tmp_path: Path
+) -> None:
+    """The default stream on it stops before any work with one line naming what to change."""
+    urdf, message = REFUSED[name]
+    cmd = [sys.executable, "scripts/run_stream.py", "--urdf", str(urdf), "--out", str(tmp_path)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and len(errors) == 1 and message in errors[0], proc.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_missing_meshes_are_one_warning_line_and_the_arm_loads() -> None:
+    proc = _inspect("--urdf", CORPUS["rtb-vx300s"][0], "--checks", "1")
+    assert proc.returncode == 0, proc.stderr
+    warned = [line for line in proc.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warned) == 1 and "package://trossen_descriptions/meshes/" in warned[0]
+    assert "OK" in proc.stdout.splitlines()[-1]
+
+
+def _package_with_mesh(root: Path, package: str, manifest: bool) -> Path:
+    """``root/<folder>/urdf/arm.urdf`` naming ``package://<package>/meshes/base.obj``, with the
+    mesh in the package; the folder is named ``package``, or holds a package.xml naming it."""
+    folder = root / ("pkg_folder" if manifest else package)
+    (folder / "urdf").mkdir(parents=True)
+    (folder / "meshes").mkdir()
+    (folder / "meshes" / "base.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    if manifest:
+        (folder / "package.xml").write_text(f"<package><name>{package}</name></package>")
+    text = Path("robots/kuka_peg.urdf").read_text()
+    shape = '<geometry><cylinder radius="0.07" length="0.1575"/></geometry>'
+    mesh = f'<geometry><mesh filename="package://{package}/meshes/base.obj"/></geometry>'
+    (folder / "urdf" / "arm.urdf").write_text(text.replace(shape, mesh, 1))
+    return folder
+
+
+@pytest.mark.parametrize("manifest", [False, True])
+def test_package_uri_is_found_among_the_urdf_ancestors(tmp_path: Path, manifest: bool) -> None:
+    folder = _package_with_mesh(tmp_path, "my_arm_description", manifest)
+    arm = load_arm(str(folder / "urdf" / "arm.urdf"))
+    assert f'filename="{folder / "meshes" / "base.obj"}"' in arm.urdf_text
+
+
+@pytest.mark.parametrize("how", ["ROS_PACKAGE_PATH", "package_path"])
+def test_package_uri_is_found_on_the_package_path(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, how: str
+) -> None:
+    """The URDF copied away from its package finds it through ROS_PACKAGE_PATH or
+    ``--package-path`` (a folder holding the package, searched below)."""
+    folder = _package_with_mesh(tmp_path / "src" / "group", "my_arm_description", True)
+    away = tmp_path / "elsewhere"
+    away.mkdir()
+    shutil.copy(folder / "urdf" / "arm.urdf", away / "arm.urdf")
+    with pytest.warns(ArmWarning, match="mesh file"):  # and the shape is dropped
+        assert "base.obj" not in load_arm(str(away / "arm.urdf")).urdf_text
+    if how == "ROS_PACKAGE_PATH":
+        monkeypatch.setenv("ROS_PACKAGE_PATH", str(tmp_path / "src"))
+        arm = load_arm(str(away / "arm.urdf"))
+    else:
+        arm = load_arm(str(away / "arm.urdf"), package_path=(str(tmp_path / "src"),))
+    assert f'filename="{folder / "meshes" / "base.obj"}"' in arm.urdf_text
+
+
+def test_package_path_flag_reaches_the_loader(tmp_path: Path) -> None:
+    folder = _package_with_mesh(tmp_path / "src", "my_arm_description", True)
+    away = tmp_path / "arm.urdf"
+    shutil.copy(folder / "urdf" / "arm.urdf", away)
+    proc = _inspect("--urdf", str(away), "--checks", "1", "--package-path", str(tmp_path / "src"))
+    assert proc.returncode == 0 and "warning:" not in proc.stderr, proc.stderr
+    proc = _inspect("--urdf", str(away), "--package-path", str(tmp_path / "nowhere"))
+    assert proc.returncode == 2 and "--package-path" in proc.stderr.splitlines()[-1]
+
+
+def _kuka_variant(tmp_path: Path, old: str, new: str) -> str:
+    text = Path("robots/kuka_peg.urdf").read_text()
+    assert old in text
+    return _write(tmp_path, "variant.urdf", text.replace(old, new, 1))
+
+
+def test_thin_link_with_a_zero_principal_moment_loads_and_simulates(tmp_path: Path) -> None:
+    """A thin rod's inertia, diag(I, I, 0), is physical: positive semi-definite."""
+    text = Path("robots/kuka_peg.urdf").read_text()
+    link7 = text.index('<link name="iiwa_link_7">')
+    izz = text.index("izz=", link7)
+    end = text.index('"', izz + 5)
+    path = _write(tmp_path, "thin.urdf", text[:izz] + 'izz="0' + text[end:])
+    task = PegTask(TaskConfig(urdf=path, world=WorldConfig(T=10)), n_worlds=1)
+    try:
+        hold = lambda t, x, rows: torch.zeros(x.shape[0], task.arm.dof, dtype=torch.float64)  # noqa: E731
+        assert torch.isfinite(task.sample(hold, [(0.0, 0.0)]).x).all()
+    finally:
+        task.close()
+
+
+def test_fixed_joint_limits_are_ignored(tmp_path: Path) -> None:
+    """Published fixed mounting joints carry placeholder limits such as effort 0."""
+    path = _kuka_variant(
+        tmp_path,
+        '<joint name="iiwa_joint_ee" type="fixed">',
+        '<joint name="iiwa_joint_ee" type="fixed"><limit effort="0" velocity="0"/>',
+    )
+    assert load_arm(path).dof == 7
+
+
+def test_off_chain_and_mimic_joints_are_locked_at_their_limit(tmp_path: Path) -> None:
+    """A finger (prismatic, limits [0.01, 0.04]) and its mimic twin on the last link: neither
+    is actuated; both become fixed at 0.01, folded into their origins."""
+    finger = (
+        '<link name="f{i}"><inertial><mass value="0.01"/><inertia ixx="1e-6" iyy="1e-6" '
+        'izz="1e-6" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+        '<joint name="finger_{i}" type="prismatic"><parent link="iiwa_link_7"/>'
+        '<child link="f{i}"/><origin xyz="0 0 0.05"/><axis xyz="0 1 0"/>{mimic}'
+        '<limit lower="0.01" upper="0.04" effort="0" velocity="0.2"/></joint>'
+    )
+    extra = finger.format(i=1, mimic="") + finger.format(i=2, mimic='<mimic joint="finger_1"/>')
+    text = Path("robots/kuka_peg.urdf").read_text().replace("</robot>", extra + "</robot>")
+    arm = load_arm(_write(tmp_path, "fingers.urdf", text))
+    assert len(arm.joint_names) == 7 and "finger_1" not in arm.joint_names
+    joints = {j.get("name"): j for j in ET.fromstring(arm.urdf_text).findall("joint")}
+    for name in ("finger_1", "finger_2"):
+        origin = joints[name].find("origin")
+        assert joints[name].get("type") == "fixed" and origin is not None
+        assert np.allclose([float(v) for v in origin.get("xyz", "").split()], [0, 0.01, 0.05])
+
+
+def test_a_published_arm_with_a_gripper_ends_before_the_gripper() -> None:
+    """pybullet_data's Panda: the fingers are locked and the end effector is the hand's TCP."""
+    arm = load_arm(PANDA)
+    assert arm.ee_link == "panda_grasptarget" and arm.peg_axis == "z"
+    assert not any("finger" in name for name in arm.joint_names)
+
+
+def test_automatic_peg_axis_points_away_from_the_last_joint() -> None:
+    """The Trossen wrist frame's +x runs out along the gripper."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        assert load_arm(CORPUS["rtb-wx250s"][0]).peg_axis == "x"
+
+
+def test_two_equal_arms_need_an_end_effector(tmp_path: Path) -> None:
+    body = LINK.format(n="base")
+    for side in "ab":
+        body += "".join(LINK.format(n=f"{side}{i}") for i in (1, 2))
+        body += JOINT.format(n=f"{side}j1", t="revolute", p="base", c=f"{side}1", z=0.1)
+        body += JOINT.format(n=f"{side}j2", t="revolute", p=f"{side}1", c=f"{side}2", z=0.3)
+    path = _write(tmp_path, "two.urdf", f'<robot name="two">{body}</robot>')
+    with pytest.raises(LolgpsError, match="2 arms, ending at a2, b2: name one with --ee-link"):
+        load_arm(path)
+    assert load_arm(path, ee_link="b2").joint_names == ("bj1", "bj2")
+
+
+@pytest.mark.parametrize(
+    ("make", "flag"),
+    [
+        (lambda: PegConfig(axis="w"), "--peg-axis"),  # type: ignore[arg-type]
+        (lambda: PegConfig(length=0.0), "--peg-length"),
+        (lambda: PegConfig(radius=float("nan")), "--peg-radius"),
+        (lambda: WorldConfig(friction=-1.0), "--friction"),
+        (lambda: WorldConfig(dt=0.0), "dt"),
+        (lambda: WorldConfig(clearance_bottom=0.01), "clearance"),
+        (lambda: PlacementConfig(q0=(float("inf"),)), "--q0"),
+        (lambda: PlacementConfig(positions=((0.0, float("nan")),)), "positions"),
+        (lambda: TaskConfig(urdf="x", package_path=("/nonexistent/folder",)), "--package-path"),
+    ],
+)
+def test_task_configs_check_their_fields(make: object, flag: str) -> None:
+    assert callable(make)
+    with pytest.raises(LolgpsError, match=flag):
+        make()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(CORPUS))
+def test_published_arm_learns_the_default_stream(name: str, tmp_path: Path) -> None:
+    """The main job with only ``--urdf``: the global policy succeeds at >= 7 of the 8 training
+    positions and every local controller ends within the success threshold. Minutes each."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "scripts/run_stream.py", "--urdf", CORPUS[name][0], "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    entries = json.loads((out / "summary.json").read_text())["conditions"]
+    assert len(entries) == 8
+    assert max(e["local_final_distance"] for e in entries) <= WorldConfig().success_threshold
+    assert sum(bool(e["policy_success_end"]) for e in entries) >= 7

@@ -239,8 +239,8 @@ def read_run(run_dir: str | Path) -> RunData:
     config, task = _read_config(folder)
     summary = read_json(folder.summary_path) if folder.summary_path.is_file() else None
     records = _read_replay(ReplayBuffer(folder.replay_path))
-    arm = load_arm(task.urdf, task.ee_link, task.peg)
-    geometry = place_task(arm, PegKinematics(arm, "cpu"), task.placement)
+    arm = load_arm(task.urdf, task.ee_link, task.peg, task.package_path)
+    geometry = place_task(arm, PegKinematics(arm, "cpu"), task.placement, task.world.depth)
     mouth = torch.tensor(geometry.nominal_mouth, dtype=torch.float64)
     trajectories = _flatten(records, task.world.success_threshold)
     T, dX = trajectories.actions.shape[1], trajectories.states.shape[2]

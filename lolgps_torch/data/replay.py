@@ -20,7 +20,6 @@ Layout of the tensors: sample-first ``[M, T, ...]``; numpy appears only at the f
 
 from __future__ import annotations
 
-import os
 import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -31,7 +30,7 @@ import h5py
 import numpy as np
 import torch
 
-from lolgps_torch.data.run_folder import fsync_path, write_error
+from lolgps_torch.data.run_folder import atomic_write
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian
 
@@ -117,9 +116,9 @@ def _one_line(error: BaseException) -> str:
 class ReplayBuffer:
     """The replay ``D_g`` of all conditions so far, in one HDF5 file at ``path``.
 
-    Appending is atomic: the current file is copied to ``<name>.partial`` in the same folder,
-    the new group is written there, the copy is closed and fsynced and then ``os.replace``-d onto
-    ``path``. A crash at any point (even SIGKILL) leaves the previous file untouched; earlier
+    Appending is atomic (:func:`atomic_write`): the current file is copied to
+    ``<name>.partial`` in the same folder, the new group is written there, and the copy is
+    fsynced and ``os.replace``-d onto ``path``. A crash at any point (even SIGKILL) leaves the previous file untouched; earlier
     groups are copied byte for byte. One writer per file: a stale ``.partial`` from a crash is
     overwritten by the next append. A failed write (a full disk) is a :class:`LolgpsError`
     naming the file; the ``.partial`` copy is removed.
@@ -191,8 +190,8 @@ class ReplayBuffer:
                 if name in f:
                     raise LolgpsError(f"replay {self.path} already holds condition {index}")
                 self._check_sizes(f, arrays)
-        tmp = self.path.with_name(self.path.name + ".partial")
-        try:
+
+        def write(tmp: Path) -> None:
             if existing:
                 shutil.copyfile(self.path, tmp)
             with h5py.File(tmp, "a" if existing else "w", libver="v110") as f:
@@ -211,13 +210,8 @@ class ReplayBuffer:
                         compression="gzip",
                         fletcher32=True,
                     )
-            fsync_path(tmp)
-            os.replace(tmp, self.path)
-            fsync_path(self.path.parent)
-        except OSError as error:  # a full disk: the previous file is kept
-            raise write_error(self.path, error) from error
-        finally:
-            tmp.unlink(missing_ok=True)
+
+        atomic_write(self.path, write)  # a full disk: the previous file is kept
 
     def _check_sizes(self, f: h5py.File, arrays: dict[str, np.ndarray]) -> None:
         """New samples must have the state and action sizes of the stored ones."""

@@ -25,13 +25,13 @@ import json
 import os
 import tempfile
 import xml.etree.ElementTree as ET
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.validate import resolve_mesh
+from lolgps_torch.robot.packages import resolve_mesh
 from lolgps_torch.task import TaskConfig, task_config_from_dict
 
 CONFIG_FILE = "config.json"
@@ -101,9 +101,9 @@ def read_json(path: str | Path) -> Any:
         raise LolgpsError(f"corrupt {path}: {error}") from None
 
 
-def portable_urdf(path: str) -> str:
+def portable_urdf(path: str, package_path: Sequence[str] = ()) -> str:
     """The URDF at ``path`` as text that reads the same from any folder: every mesh filename
-    that resolves beside it (:func:`~lolgps_torch.robot.validate.resolve_mesh`) made absolute;
+    that resolves (:func:`~lolgps_torch.robot.packages.resolve_mesh`) made absolute;
     without such meshes, the file's text unchanged. PyBullet and yourdfpy accept absolute
     filenames."""
     try:
@@ -113,9 +113,9 @@ def portable_urdf(path: str) -> str:
         raise LolgpsError(f"cannot read URDF {path}: {error.strerror or error}") from None
     except ET.ParseError as error:
         raise LolgpsError(f"{path}: malformed XML ({error})") from None
-    base_dir, changed = os.path.dirname(os.path.abspath(path)), False
+    changed = False
     for mesh in tree.iter("mesh"):
-        resolved = resolve_mesh(mesh.get("filename", ""), base_dir)
+        resolved = resolve_mesh(mesh.get("filename", ""), path, package_path)
         if resolved is not None and resolved != mesh.get("filename"):
             mesh.set("filename", os.path.abspath(resolved))
             changed = True

@@ -199,6 +199,26 @@ def _stage_results(
     return stages
 
 
+def _roll_out(
+    info: RunInfo,
+    states: list[PolicyState],
+    groups: list[dict[str, Any]],
+    workers: int,
+    batch_size: int,
+    ray: str | None,
+) -> list[JobResult]:
+    """Every policy of ``states`` at every position of ``groups``, in batches of
+    ``batch_size`` rollouts, on ``workers`` processes or (``ray``) on Ray actors."""
+    flat: list[Position] = [(p[0], p[1]) for g in groups for p in g["positions"]]
+    batches = [tuple(flat[i : i + batch_size]) for i in range(0, len(flat), batch_size)]
+    jobs = [Job(i, batch) for i in range(len(states)) for batch in batches]
+    n_worlds = min(batch_size, len(flat))
+    if ray is None:
+        return run_jobs(info.task, states, jobs, workers, n_worlds)
+    address = None if ray == "local" else ray
+    return run_jobs_on_ray(info.task, states, jobs, address, workers, n_worlds)
+
+
 def evaluate_run(
     run_dir: str | Path,
     workers: int = 1,
@@ -237,16 +257,7 @@ def evaluate_run(
         groups = _square_group(*square, info)
     else:
         groups = _area_groups(areas) if areas is not None else _position_groups(positions or [])
-    flat: list[Position] = [(p[0], p[1]) for g in groups for p in g["positions"]]
-    batches = [tuple(flat[i : i + batch_size]) for i in range(0, len(flat), batch_size)]
-    jobs = [Job(i, batch) for i in range(len(policies)) for batch in batches]
-    states = [policy for _, policy in policies]
-    n_worlds = min(batch_size, len(flat))
-    if ray is None:
-        results = run_jobs(info.task, states, jobs, workers, n_worlds)
-    else:
-        address = None if ray == "local" else ray
-        results = run_jobs_on_ray(info.task, states, jobs, address, workers, n_worlds)
+    results = _roll_out(info, [policy for _, policy in policies], groups, workers, batch_size, ray)
     stages = _stage_results(folder, info, policies, groups, results)
     evaluated = [s for s, _ in policies]
     evaluation = {

@@ -19,17 +19,22 @@ end-effector points of the state are the tip, ``(0, 0, 0)``, and the top,
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import math
 import os
+import warnings
 import xml.etree.ElementTree as ET
-from collections.abc import Callable
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.validate import resolve_mesh, validate_urdf
+from lolgps_torch.robot.packages import resolve_mesh
+from lolgps_torch.robot.validate import ArmWarning, check_actuated_limit, validate_urdf
 
 if TYPE_CHECKING:
     import yourdfpy
@@ -39,6 +44,8 @@ ATTACHED_PEG = "lolgps_peg"
 ATTACHED_PEG_TIP = "lolgps_peg_tip"
 _ACTUATED = ("revolute", "continuous")
 _INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+# words published descriptions use in the joint names of grippers and hands
+_GRIPPER_WORDS = ("finger", "grip", "jaw", "knuckle", "claw", "thumb")
 # rpy that turns the point frame's +z onto each supported peg axis of the end-effector link.
 _AXIS_RPY = {
     "x": (0.0, math.pi / 2, 0.0),
@@ -50,20 +57,38 @@ _AXIS_RPY = {
 }
 
 
+PegAxis = Literal["auto", "x", "y", "z", "-x", "-y", "-z"]
+
+
 @dataclass(frozen=True)
 class PegConfig:
     """The peg attached to arms whose URDF has none (m), and the end-effector point spacing.
 
     :param length: peg length along ``axis`` from the end-effector link origin.
     :param radius: peg radius.
-    :param axis: the end-effector link axis the peg points along: x, y, z, -x, -y or -z.
+    :param axis: the end-effector link axis the peg points along: x, y, z, -x, -y or -z, or
+        auto: the axis nearest the direction from the last actuated joint to the end-effector
+        link (or, where they coincide, the last joint's roll axis; else z).
     :param point_separation: distance from the tip to the second (top) point on the axis.
     """
 
     length: float = 0.20
     radius: float = 0.015
-    axis: str = "z"
+    axis: PegAxis = "auto"
     point_separation: float = 0.15
+
+    def __post_init__(self) -> None:
+        for flag, value in (
+            ("--peg-length", self.length),
+            ("--peg-radius", self.radius),
+            ("point separation", self.point_separation),
+        ):
+            if not (math.isfinite(value) and value > 0):
+                raise LolgpsError(f"{flag} must be a positive length (m), got {value}")
+        if self.axis != "auto" and self.axis not in _AXIS_RPY:
+            raise LolgpsError(
+                f"--peg-axis must be auto or one of {', '.join(_AXIS_RPY)}, got {self.axis!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -83,6 +108,8 @@ class ArmSpec:
     :param effort: torque limits (N m). :param velocity: velocity limits (rad/s).
     :param point_offsets: the tip and top points in the point frame, ``((x, y, z), (x, y, z))``.
     :param peg_radius: peg radius (m), from the URDF or the attached peg.
+    :param peg_axis: the end-effector link's axis the attached peg points along ("" for a peg
+        the URDF carries).
     """
 
     urdf_text: str
@@ -99,18 +126,29 @@ class ArmSpec:
     velocity: tuple[float, ...]
     point_offsets: tuple[tuple[float, float, float], tuple[float, float, float]]
     peg_radius: float
+    peg_axis: str = ""
 
     @property
     def dof(self) -> int:
         return len(self.joint_names)
 
 
-def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None) -> ArmSpec:
-    """Read and validate a URDF arm; raise :class:`LolgpsError` with a one-line reason."""
+def load_arm(
+    path: str,
+    ee_link: str | None = None,
+    peg: PegConfig | None = None,
+    package_path: Sequence[str] = (),
+) -> ArmSpec:
+    """Read and validate a URDF arm; raise :class:`LolgpsError` with a one-line reason.
+
+    :param path: the URDF file, as published (``package://`` mesh URIs are searched for, see
+        :mod:`.packages`; meshes that are not found are only warned about).
+    :param ee_link: the end-effector link; detected when None (:func:`_detect_ee_link`).
+    :param peg: the peg attached when the URDF carries none.
+    :param package_path: folders searched for ROS packages after ``ROS_PACKAGE_PATH``.
+    """
     peg = peg or PegConfig()
-    if peg.axis not in _AXIS_RPY:
-        raise LolgpsError(f"--peg-axis must be one of {', '.join(_AXIS_RPY)}, got {peg.axis!r}")
-    raw, tree, robot, root = _parse(path)
+    raw, tree, robot, root = _parse(path, package_path)
     parent_joint = {j.child: j for j in robot.robot.joints}
     links = [link.name for link in robot.robot.links]
 
@@ -125,12 +163,16 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
     if not any(j.type in _ACTUATED for j in robot.robot.joints):
         raise LolgpsError(f"{path}: URDF has no revolute or continuous joints to actuate")
     if ee_link is None:
-        ee_link = _detect_ee_link(links, path_joints)
+        ee_link = _detect_ee_link(robot, root, path)
     elif ee_link not in links:
         raise LolgpsError(f"unknown end-effector link {ee_link!r}; links are: {', '.join(links)}")
-    actuated = _actuated_joints(path_joints(ee_link), ee_link)
+    chain = path_joints(ee_link)
+    actuated = _actuated_joints(chain, ee_link)
+    elements = {j.get("name"): j for j in tree.findall("joint")}
+    for j in actuated:
+        check_actuated_limit(elements[j.name], f"{path}: joint {j.name!r}")
+    _lock_joints(tree, {j.name for j in actuated})
 
-    text = _portable_text(tree, os.path.dirname(os.path.abspath(path)))
     carries_peg = CARRIED_PEG_TIP in links and ee_link == CARRIED_PEG_TIP
     if carries_peg:
         point_link, peg_link = CARRIED_PEG_TIP, parent_joint[CARRIED_PEG_TIP].parent
@@ -140,10 +182,14 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
             raise LolgpsError(
                 f"{path}: link name {ATTACHED_PEG!r} is reserved for the attached peg"
             )
-        text = _attach_peg(text, ee_link, peg)
         point_link, peg_link, peg_radius = ATTACHED_PEG_TIP, ATTACHED_PEG, peg.radius
+    text = _portable_text(tree, path, package_path, peg_link)
+    axis = ""
+    if not carries_peg:
+        axis = _auto_axis(chain, actuated) if peg.axis == "auto" else peg.axis
+        text = _attach_peg(text, ee_link, peg, axis)
 
-    lims = [_limits(j, path) for j in actuated]
+    lims = [_limits(j) for j in actuated]
     return ArmSpec(
         urdf_text=text,
         source_path=os.path.abspath(path),
@@ -159,10 +205,11 @@ def load_arm(path: str, ee_link: str | None = None, peg: PegConfig | None = None
         velocity=tuple(lim[3] for lim in lims),
         point_offsets=((0.0, 0.0, 0.0), (0.0, 0.0, -peg.point_separation)),
         peg_radius=peg_radius,
+        peg_axis=axis,
     )
 
 
-def _parse(path: str) -> tuple[bytes, ET.Element, yourdfpy.URDF, str]:
+def _parse(path: str, package_path: Sequence[str]) -> tuple[bytes, ET.Element, yourdfpy.URDF, str]:
     """The file's bytes, its XML tree, yourdfpy's model and the root link; one-line errors for
     bad files, raised before yourdfpy, pytorch-kinematics or PyBullet read them."""
     import yourdfpy  # here, not at the top: see the module docstring
@@ -181,32 +228,46 @@ def _parse(path: str) -> tuple[bytes, ET.Element, yourdfpy.URDF, str]:
     root = validate_urdf(tree, path)
     try:
         robot = yourdfpy.URDF.load(
-            io.BytesIO(raw), build_scene_graph=False, load_meshes=False, load_collision_meshes=False
+            io.BytesIO(raw),
+            build_scene_graph=False,
+            load_meshes=False,
+            load_collision_meshes=False,
+            filename_handler=lambda name: resolve_mesh(name, path, package_path) or name,
         )
     except Exception as exc:  # yourdfpy raises assorted types on schema errors
         raise LolgpsError(f"{path}: not a valid URDF ({type(exc).__name__}: {exc})") from None
     return raw, tree, robot, root
 
 
+def _is_arm_joint(j: yourdfpy.Joint) -> bool:
+    """A joint the method actuates: revolute or continuous, driven by itself (no mimic)."""
+    return j.type in _ACTUATED and j.mimic is None
+
+
 def _actuated_joints(chain: list[yourdfpy.Joint], ee_link: str) -> list[yourdfpy.Joint]:
-    """The actuated joints of the chain from the root to ``ee_link``."""
-    actuated = [j for j in chain if j.type in _ACTUATED]
+    """The actuated joints of the chain from the root to ``ee_link``; its mimic, prismatic and
+    other joints are locked."""
+    actuated = [j for j in chain if _is_arm_joint(j)]
     if not actuated:
-        raise LolgpsError(f"end-effector link {ee_link!r} is not downstream of any actuated joint")
-    unsupported = [j for j in chain if j.type not in (*_ACTUATED, "fixed")]
-    if unsupported:
         raise LolgpsError(
-            f"joint {unsupported[0].name!r} ({unsupported[0].type}) lies on the chain to "
-            f"{ee_link!r}; only revolute, continuous and fixed joints are supported there"
+            f"end-effector link {ee_link!r} is not downstream of any actuated joint; "
+            f"name another with --ee-link"
+        )
+    locked = [j.name for j in chain if j.type not in (*_ACTUATED, "fixed")]
+    if locked:
+        warnings.warn(
+            f"joint(s) {', '.join(map(repr, locked))} on the chain to {ee_link!r} are locked at "
+            f"0: only revolute and continuous joints are actuated",
+            ArmWarning,
+            stacklevel=3,
         )
     return actuated
 
 
-def _limits(j: yourdfpy.Joint, path: str) -> tuple[float, float, float, float]:
-    """(lower, upper, effort, velocity); continuous joints get [-pi, pi] for placement."""
+def _limits(j: yourdfpy.Joint) -> tuple[float, float, float, float]:
+    """(lower, upper, effort, velocity) of a checked joint (:func:`check_actuated_limit`);
+    continuous joints get [-pi, pi] for placement."""
     lim = j.limit
-    if lim is None or lim.effort is None:
-        raise LolgpsError(f"{path}: joint {j.name!r} has no effort limit")
     if j.type == "continuous" or lim.lower is None or lim.upper is None:
         lower, upper = -math.pi, math.pi
     else:
@@ -215,17 +276,148 @@ def _limits(j: yourdfpy.Joint, path: str) -> tuple[float, float, float, float]:
     return lower, upper, float(lim.effort), velocity
 
 
-def _detect_ee_link(links: list[str], path_joints: Callable[[str], list[yourdfpy.Joint]]) -> str:
-    """End of the longest actuated chain: most revolute joints, then fixed-only tail, then depth."""
+def _is_gripper(j: yourdfpy.Joint) -> bool:
+    """A gripper's joint, by the words published descriptions use in their names (not in
+    link names: several arms call their wrist link ``gripper_link``)."""
+    return any(word in j.name.lower() for word in _GRIPPER_WORDS)
 
-    def rank(link: str) -> tuple[int, int, int]:
-        chain = path_joints(link)
-        n_act = sum(j.type in _ACTUATED for j in chain)
-        last = max((i for i, j in enumerate(chain) if j.type in _ACTUATED), default=-1)
-        fixed_tail = all(j.type == "fixed" for j in chain[last + 1 :])
-        return n_act, int(fixed_tail), len(chain)
 
-    return max(links, key=rank)
+def _detect_ee_link(robot: yourdfpy.URDF, root: str, path: str) -> str:
+    """The end of the arm: follow the actuated joints down from the root and stop at the link
+    below which the tree splits into branches no deeper than the path so far (a hand or
+    gripper) or has no actuated joint left; then take the deepest link fixed to it (a flange,
+    tool or TCP frame), skipping gripper parts.  Gripper joints (:func:`_is_gripper`),
+    mimic and prismatic joints never count.  Two equally deep arms are an error naming them.
+    """
+    children: dict[str, list[yourdfpy.Joint]] = {}
+    for j in robot.robot.joints:
+        children.setdefault(j.parent, []).append(j)
+
+    @functools.cache
+    def depth(link: str) -> int:  # most actuated joints on a path below link
+        arm = [j for j in children.get(link, []) if not _is_gripper(j)]
+        return max((_is_arm_joint(j) + depth(j.child) for j in arm), default=0)
+
+    def branches(link: str) -> list[tuple[int, str]]:
+        arm = [j for j in children.get(link, []) if not _is_gripper(j)]
+        found = [(_is_arm_joint(j) + depth(j.child), j.child) for j in arm]
+        return [(d, c) for d, c in found if d]
+
+    def tip(link: str) -> str:
+        while branches(link):
+            link = max(branches(link))[1]
+        return link
+
+    link, passed = root, 0
+    while branches(link):
+        found = branches(link)
+        best = max(d for d, _ in found)
+        deepest = [c for d, c in found if d == best]
+        if len(found) > 1 and passed >= best:
+            break  # a hand below the arm
+        if len(deepest) > 1:
+            raise LolgpsError(
+                f"{path}: the description has {len(deepest)} arms, ending at "
+                f"{', '.join(tip(c) for c in deepest)}: name one with --ee-link"
+            )
+        passed += _is_arm_joint(robot.joint_map[_parent_joint_name(robot, deepest[0])])
+        link = deepest[0]
+    return _deepest_fixed(children, link)
+
+
+def _deepest_fixed(children: dict[str, list[yourdfpy.Joint]], link: str) -> str:
+    """The deepest link hanging from ``link`` by fixed, non-gripper joints (the first found,
+    breadth first, among equally deep ones); ``link`` itself if there is none."""
+    fixed, frontier = [(0, link)], [(0, link)]
+    while frontier:
+        level, here = frontier.pop(0)
+        for j in children.get(here, []):
+            if j.type == "fixed" and not _is_gripper(j):
+                fixed.append((level + 1, j.child))
+                frontier.append((level + 1, j.child))
+    return max(fixed, key=lambda item: item[0])[1]
+
+
+def _parent_joint_name(robot: yourdfpy.URDF, link: str) -> str:
+    return next(j.name for j in robot.robot.joints if j.child == link)
+
+
+def _lock_joints(tree: ET.Element, keep: set[str]) -> None:
+    """Make every moving joint not in ``keep`` a fixed one at its lock position (0, or the
+    nearest limit when 0 is outside them), folded into its ``<origin>``; drop the limits and
+    mimic tags of fixed joints, which mean nothing here."""
+    for joint in tree.findall("joint"):
+        kind = joint.get("type")
+        if kind != "fixed" and joint.get("name") not in keep:
+            _fold_lock_position(joint, kind or "")
+            joint.set("type", "fixed")
+        if joint.get("type") == "fixed":
+            for tag in ("limit", "mimic", "dynamics", "safety_controller", "calibration"):
+                for part in joint.findall(tag):
+                    joint.remove(part)
+
+
+def _fold_lock_position(joint: ET.Element, kind: str) -> None:
+    """``origin <- origin * motion(q)`` for the lock position q of a revolute, continuous or
+    prismatic joint: a rotation about, or a translation along, its axis."""
+    limit = joint.find("limit")
+    lower = float(limit.get("lower", 0.0)) if limit is not None else 0.0
+    upper = float(limit.get("upper", 0.0)) if limit is not None else 0.0
+    q = min(max(0.0, lower), upper) if kind != "continuous" and lower <= upper else 0.0
+    if q == 0.0 or kind not in ("revolute", "continuous", "prismatic"):
+        return
+    axis_el = joint.find("axis")
+    axis = np.array(
+        [
+            float(v)
+            for v in (axis_el.get("xyz", "1 0 0") if axis_el is not None else "1 0 0").split()
+        ]
+    )
+    axis = axis / np.linalg.norm(axis)
+    origin = joint.find("origin")
+    if origin is None:
+        origin = ET.SubElement(joint, "origin")
+    xyz = np.array([float(v) for v in origin.get("xyz", "0 0 0").split()])
+    rotation = _rpy_matrix(*(float(v) for v in origin.get("rpy", "0 0 0").split()))
+    if kind == "prismatic":
+        xyz = xyz + rotation @ (axis * q)
+    else:
+        rotation = rotation @ _axis_angle_matrix(axis, q)
+    origin.set("xyz", " ".join(repr(float(v)) for v in xyz))
+    origin.set("rpy", " ".join(repr(v) for v in _matrix_rpy(rotation)))
+
+
+def _rpy_matrix(r: float, p: float, y: float) -> np.ndarray:
+    """URDF's fixed-axis roll-pitch-yaw: ``R = Rz(y) Ry(p) Rx(r)``."""
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(r),
+        math.sin(r),
+        math.cos(p),
+        math.sin(p),
+        math.cos(y),
+        math.sin(y),
+    )
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def _matrix_rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`_rpy_matrix` (roll 0 at the pitch = +-pi/2 singularity)."""
+    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    if abs(R[2, 0]) > 1 - 1e-12:
+        return 0.0, pitch, math.atan2(-R[0, 1], R[1, 1])
+    return math.atan2(R[2, 1], R[2, 2]), pitch, math.atan2(R[1, 0], R[0, 0])
+
+
+def _axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues: ``R = I + sin(a) [k]x + (1 - cos(a)) [k]x^2`` for the unit axis k."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
 
 
 def _cylinder_radius(robot: yourdfpy.URDF, link: str, path: str) -> float:
@@ -235,19 +427,18 @@ def _cylinder_radius(robot: yourdfpy.URDF, link: str, path: str) -> float:
     raise LolgpsError(f"{path}: peg link {link!r} (parent of {CARRIED_PEG_TIP!r}) has no cylinder")
 
 
-def _portable_text(tree: ET.Element, base_dir: str) -> str:
+def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg_link: str) -> str:
     """The URDF as text both PyBullet and pytorch-kinematics accept from any folder, and read
-    alike: mesh paths resolved to absolute ones, transmission/gazebo elements (unused here)
-    dropped, and URDF defaults written out where the two readers differ: axis (1, 0, 0) on
-    moving joints that omit it (pytorch-kinematics would take (0, 0, 1)), and zero mass and
-    inertia on links without ``<inertial>`` (PyBullet would give them 1 kg and 1 kg m^2)."""
+    alike: mesh paths resolved to absolute ones (:mod:`.packages`), collision shapes of arm
+    links and meshes not found dropped (arm links never collide here; one :class:`ArmWarning`
+    names what is missing), transmission/gazebo elements (unused here) dropped, and URDF
+    defaults written out where the two readers differ: axis (1, 0, 0) on moving joints that
+    omit it (pytorch-kinematics would take (0, 0, 1)), and zero mass and inertia on links
+    without ``<inertial>`` (PyBullet would give them 1 kg and 1 kg m^2)."""
     for child in list(tree):
         if child.tag in ("transmission", "gazebo"):
             tree.remove(child)
-    for mesh in tree.iter("mesh"):
-        resolved = resolve_mesh(mesh.get("filename", ""), base_dir)
-        if resolved:
-            mesh.set("filename", resolved)
+    _drop_unused_shapes(tree, path, package_path, peg_link)
     for joint in tree.findall("joint"):
         if joint.get("type") != "fixed" and joint.find("axis") is None:
             ET.SubElement(joint, "axis", xyz="1 0 0")
@@ -259,9 +450,61 @@ def _portable_text(tree: ET.Element, base_dir: str) -> str:
     return ET.tostring(tree, encoding="unicode")
 
 
-def _attach_peg(text: str, ee_link: str, peg: PegConfig) -> str:
-    """Append a peg cylinder and its tip frame, fixed to ``ee_link`` along ``peg.axis``."""
-    r, p, y = _AXIS_RPY[peg.axis]
+def _auto_axis(chain: list[yourdfpy.Joint], actuated: list[yourdfpy.Joint]) -> str:
+    """The end-effector link axis (+-x, y, z) nearest the direction, at q = 0, from the last
+    actuated joint's origin to the link's origin; where the two coincide, the last joint's
+    axis if it rolls along the arm (parallel, within 25 degrees, to the step from the joint
+    before it), pointing away from that joint; otherwise z."""
+    pose, joints = np.eye(4), []
+    for j in chain:
+        pose = pose @ (j.origin if j.origin is not None else np.eye(4))
+        if j in actuated:
+            axis = np.asarray(j.axis if j.axis is not None else (1.0, 0.0, 0.0), dtype=float)
+            joints.append((pose[:3, 3].copy(), pose[:3, :3] @ (axis / np.linalg.norm(axis))))
+    out = pose[:3, 3] - joints[-1][0]
+    if np.linalg.norm(out) < 1e-3:
+        step = joints[-1][0] - joints[-2][0] if len(joints) > 1 else np.zeros(3)
+        along = float(joints[-1][1] @ step)
+        if np.linalg.norm(step) < 1e-6 or abs(along) < 0.9 * np.linalg.norm(step):
+            return "z"
+        out = joints[-1][1] * np.sign(along)
+    local = pose[:3, :3].T @ out
+    i = int(np.argmax(np.abs(local)))
+    return ("-" if local[i] < 0 else "") + "xyz"[i]
+
+
+def _drop_unused_shapes(
+    tree: ET.Element, path: str, package_path: Sequence[str], peg_link: str
+) -> None:
+    """Drop the collision shapes of every link but the peg, resolve mesh filenames, and drop
+    the shapes whose mesh is not found (one :class:`ArmWarning` names the first)."""
+    missing: list[str] = []
+    for link in tree.findall("link"):
+        for element in link.findall("collision") if link.get("name") != peg_link else []:
+            link.remove(element)
+        for element in [*link.findall("visual"), *link.findall("collision")]:
+            mesh = element.find("geometry/mesh")
+            if mesh is None:
+                continue
+            resolved = resolve_mesh(mesh.get("filename", ""), path, package_path)
+            if resolved:
+                mesh.set("filename", resolved)
+            else:
+                missing.append(mesh.get("filename", ""))
+                link.remove(element)
+    if missing:
+        warnings.warn(
+            f"{path}: {len(missing)} mesh file(s) not found, e.g. {missing[0]!r}; the arm is "
+            f"loaded without them (they are not needed to learn; --package-path DIR finds "
+            f"their ROS package)",
+            ArmWarning,
+            stacklevel=3,
+        )
+
+
+def _attach_peg(text: str, ee_link: str, peg: PegConfig, axis: str) -> str:
+    """Append a peg cylinder and its tip frame, fixed to ``ee_link`` along ``axis``."""
+    r, p, y = _AXIS_RPY[axis]
     half = peg.length / 2
     inertia = 0.2 * (3 * peg.radius**2 + peg.length**2) / 12
     xml = f"""

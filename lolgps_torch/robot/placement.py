@@ -1,4 +1,4 @@
-"""Where the hole goes and where the arm starts, derived from the arm itself.
+"""Where the hole goes and where the arm starts, derived from the arm itself and the stream.
 
 A task pose is fixed by the two peg points: the tip at a point ``c`` and the top at
 ``c + s e_z`` (s the point separation), i.e. the peg vertical, pointing down.  Inverse
@@ -6,10 +6,20 @@ kinematics solves ``min_q |p(q) - p*|^2`` by damped least squares
 (Levenberg-Marquardt steps ``dq = (J^T J + mu I)^{-1} (J^T e + 0.1 mu (q_mid - q) / span)``,
 whose last term drifts the redundant directions towards mid-range) from several starts in one
 batch, and keeps the converged solution furthest inside the joint limits.
+
+Placement.  With R the arm's reach from its shoulder (:func:`reach`), the nominal hole mouth
+is tried at ``shoulder + (rho R cos a, rho R sin a, -eta R)`` for a grid of fractions
+``(rho, eta)`` about ``(reach_fraction, mouth_below_shoulder)`` and azimuths a about the
+base's +x, nearest first (:func:`_candidates`): first as it is, then shifted by ``-c`` with
+``c`` the centre of the stream's positions (so that they straddle the spot).  The first mouth
+at which the start pose and every position's hole floor are reachable with the peg pointing
+down, inside the joint limits' margin, is kept.  Nothing but R scales it; an arm placed as
+before (a = 0, the configured fractions, all reachable) gets the same hole and start pose.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -19,18 +29,33 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.robot.kinematics import PegKinematics
 
+Position = tuple[float, float]
+# (rho, eta) offsets from the preferred fractions, and azimuths (degrees) about the base's +x,
+# tried by the placement
+_STEPS = (0.0, -0.1, 0.1, -0.2, 0.2, 0.3)
+_AZIMUTHS = (0, 45, -45, 90, -90, 135, -135, 180)
+_START_SCALES = (1.0, 0.5)
+_SAMPLES = 16384  # random poses for the down-pointing workspace
+_REACH_SAMPLES = 4096  # the first of them, for the reach
+_SCREEN = 0.1  # candidates are solved if every target is this near (x reach) a sampled tip
+_VERIFIED = 24  # candidates solved in one IK batch
+_CHUNKS = 4  # batches at most
+
 
 @dataclass(frozen=True)
 class PlacementConfig:
     """Automatic placement of the hole and the start pose (m).
 
-    :param reach_fraction: nominal hole's horizontal distance from the base, as a fraction of
-        the arm's reach measured from its second actuated joint.
-    :param mouth_below_shoulder: hole mouth height below the shoulder, as a fraction of reach.
+    :param reach_fraction: nominal hole's preferred horizontal distance from the shoulder, as a
+        fraction of the arm's reach measured from its second actuated joint.
+    :param mouth_below_shoulder: preferred hole mouth height below the shoulder, as a fraction
+        of reach.
     :param start_offset: peg tip at the start pose relative to the nominal hole mouth.
     :param q0: explicit start pose (rad); derived by inverse kinematics when None.
     :param ik_tolerance: largest point error (m) accepted as reached.
     :param limit_margin: fraction of each joint's range kept free at both ends.
+    :param positions: the hole offsets (m) the placement must reach (the stream's conditions);
+        the nominal position alone when empty.
     """
 
     reach_fraction: float = 0.55
@@ -39,6 +64,30 @@ class PlacementConfig:
     q0: tuple[float, ...] | None = None
     ik_tolerance: float = 1e-3
     limit_margin: float = 0.05
+    positions: tuple[Position, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.reach_fraction < 1.0:
+            raise LolgpsError(f"reach fraction must be in (0, 1), got {self.reach_fraction}")
+        if not -1.0 < self.mouth_below_shoulder < 1.0:
+            raise LolgpsError(
+                f"mouth height below the shoulder must be in (-1, 1) reach, got "
+                f"{self.mouth_below_shoulder}"
+            )
+        if len(self.start_offset) != 3 or not all(map(math.isfinite, self.start_offset)):
+            raise LolgpsError(f"start offset needs 3 finite numbers, got {self.start_offset}")
+        if self.q0 is not None and not all(map(math.isfinite, self.q0)):
+            raise LolgpsError(f"--q0 must be finite numbers (rad), got {list(self.q0)}")
+        if not self.ik_tolerance > 0:
+            raise LolgpsError(f"IK tolerance must be positive, got {self.ik_tolerance}")
+        if not 0.0 <= self.limit_margin < 0.5:
+            raise LolgpsError(f"limit margin must be in [0, 0.5), got {self.limit_margin}")
+        positions = tuple((float(p[0]), float(p[1])) for p in self.positions)
+        if any(len(p) != 2 for p in self.positions) or not all(
+            math.isfinite(v) for p in positions for v in p
+        ):
+            raise LolgpsError("hole positions must be finite (dx, dy) pairs (m)")
+        object.__setattr__(self, "positions", positions)
 
 
 @dataclass(frozen=True)
@@ -60,19 +109,41 @@ def solve_ik(
     kin: PegKinematics, arm: ArmSpec, targets: Tensor, margin: float, iterations: int = 200
 ) -> tuple[Tensor, Tensor]:
     """Best IK solution for point targets ``[2, 3]``: returns ``(q [n], point error in m)``."""
+    q, err = solve_ik_batch(kin, arm, targets[None], margin, iterations)
+    return q[0], err[0]
+
+
+def solve_ik_batch(
+    kin: PegKinematics,
+    arm: ArmSpec,
+    targets: Tensor,
+    margin: float,
+    iterations: int = 200,
+    starts: int = 16,
+    seeds: Tensor | None = None,
+    group: int | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Best IK solutions for ``K`` point targets ``[K, 2, 3]``, each from ``starts`` starts
+    (the first at mid-range, the second at ``seeds[k]`` if given, the others random): returns
+    ``(q [K, n], point error [K] in m)``.  It stops once every target is solved or, with
+    ``group``, once every target of some run of ``group`` consecutive ones is."""
+    K, n = targets.shape[0], arm.dof
     lo = torch.tensor(arm.lower, dtype=torch.float64, device=kin.device)
     hi = torch.tensor(arm.upper, dtype=torch.float64, device=kin.device)
     span, mid = hi - lo, (hi + lo) / 2
     gen = torch.Generator().manual_seed(0)
-    starts = torch.rand(16, arm.dof, generator=gen, dtype=torch.float64).to(kin.device)
-    q = lo + span * (0.2 + 0.6 * starts)
-    q[0] = mid
-    goal = targets.reshape(6)
-    eye = torch.eye(arm.dof, dtype=torch.float64, device=kin.device)
+    u = torch.rand(starts, n, generator=gen, dtype=torch.float64).to(kin.device)
+    q = (lo + span * (0.2 + 0.6 * u)).repeat(K, 1)  # [K * S, n], target-major
+    q[::starts] = mid
+    if seeds is not None:
+        q[1::starts] = seeds.clamp(lo + margin * span, hi - margin * span)
+    goal = targets.reshape(K, 1, 6).expand(K, starts, 6).reshape(K * starts, 6)
+    eye = torch.eye(n, dtype=torch.float64, device=kin.device)
     for _ in range(iterations):
         pts, J = kin.points_and_jacobian(q)
         e = goal - pts.reshape(-1, 6)
-        if e.norm(dim=-1).min() < 1e-7:
+        solved = e.norm(dim=-1).reshape(K, starts).min(dim=-1).values < 1e-7
+        if bool(solved.reshape(-1, group or K).all(dim=-1).any()):
             break
         mu = 1e-4
         JtJ = J.transpose(-1, -2) @ J + mu * eye
@@ -80,11 +151,13 @@ def solve_ik(
         dq = torch.linalg.solve(JtJ, rhs)
         dq = dq * (0.2 / dq.norm(dim=-1, keepdim=True).clamp(min=0.2))  # trust region 0.2 rad
         q = (q + dq).clamp(lo + margin * span, hi - margin * span)
-    err = (goal - kin.points(q).reshape(-1, 6)).norm(dim=-1)
-    ok = err < max(1e-4, err.min().item() * 1.01 + 1e-9)
+    err = (goal - kin.points(q).reshape(-1, 6)).norm(dim=-1).reshape(K, starts)
+    q = q.reshape(K, starts, n)
+    ok = err < torch.clamp(err.min(dim=-1, keepdim=True).values * 1.01 + 1e-9, min=1e-4)
     centred = ((q - mid).abs() / span).max(dim=-1).values
-    best = torch.where(ok, centred, torch.full_like(centred, float("inf"))).argmin()
-    return q[best], err[best]
+    best = torch.where(ok, centred, torch.full_like(centred, float("inf"))).argmin(dim=-1)
+    rows = torch.arange(K, device=kin.device)
+    return q[rows, best], err[rows, best]
 
 
 def reach(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float]:
@@ -92,10 +165,17 @@ def reach(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float]:
 
     Reach is approximated by the tip's farthest distance from the shoulder over random poses.
     """
+    shoulder, radius, _, _ = _workspace(arm, kin)
+    return shoulder, radius
+
+
+def _workspace(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float, Tensor, Tensor]:
+    """Shoulder, reach, and the random poses ``q [P, n]`` (within the limits' margin) whose peg
+    points within 30 degrees of straight down, with their tips ``[P, 3]``."""
     gen = torch.Generator().manual_seed(1)
     lo = torch.tensor(arm.lower, dtype=torch.float64)
     hi = torch.tensor(arm.upper, dtype=torch.float64)
-    q = (lo + (hi - lo) * torch.rand(4096, arm.dof, generator=gen, dtype=torch.float64)).to(
+    q = (lo + (hi - lo) * torch.rand(_SAMPLES, arm.dof, generator=gen, dtype=torch.float64)).to(
         kin.device
     )
     frames = kin.chain.forward_kinematics(
@@ -104,32 +184,128 @@ def reach(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float]:
     joint_frames = kin.chain.get_joint_parent_frame_names()
     shoulder_frame = joint_frames[1] if arm.dof > 1 else joint_frames[0]
     shoulder = frames[shoulder_frame].get_matrix()[0, :3, 3].to(kin.device)
-    tip = kin.points(q)[:, 0]
-    return shoulder, float((tip - shoulder).norm(dim=-1).max())
+    points = kin.points(q)  # [S, 2, 3]
+    tip = points[:, 0]
+    along = (points[:, 0] - points[:, 1]) / -arm.point_offsets[1][2]  # unit, top to tip
+    down = along[:, 2] < -math.cos(math.radians(30.0))
+    radius = float((tip[:_REACH_SAMPLES] - shoulder).norm(dim=-1).max())
+    return shoulder, radius, q[down], tip[down]
 
 
-def place_task(arm: ArmSpec, kin: PegKinematics, config: PlacementConfig) -> TaskGeometry:
-    """Nominal hole within reach in front of the arm, and a start pose above and away from it."""
-    shoulder, radius = reach(arm, kin)
-    mouth = torch.stack(
-        [
-            shoulder[0] + config.reach_fraction * radius,
-            shoulder[1],
-            shoulder[2] - config.mouth_below_shoulder * radius,
-        ]
+def place_task(
+    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, depth: float
+) -> TaskGeometry:
+    """The first nominal hole (module docstring) at which the start pose and the floor of the
+    hole at every position are reachable with the peg pointing down; the start pose from IK
+    (or ``config.q0``).  A :class:`LolgpsError` naming what to change when there is none.
+
+    The candidates are screened by how near each target lies to the random down-pointing
+    poses' tips; the preferred one, then the screened ones in order, are solved by IK in
+    batches, each target started from mid-range, from the pose of its nearest sampled tip and
+    from random poses.
+
+    :param depth: the hole's depth (m): the tip's target is that far below the mouth.
+    """
+    if config.q0 is not None and len(config.q0) != arm.dof:
+        raise LolgpsError(f"--q0 needs {arm.dof} values, got {len(config.q0)}")
+    shoulder, radius, cloud_q, cloud_tip = _workspace(arm, kin)
+    positions = torch.tensor(config.positions or ((0.0, 0.0),), dtype=torch.float64)
+    positions = positions.to(kin.device)
+    M = positions.shape[0]
+    floor = torch.nn.functional.pad(positions, (0, 1), value=-depth)  # [M, 3] below the mouth
+    mouths, start_offsets = _candidates(shoulder, radius, positions, config)  # [C, 3] each
+    tips = mouths[:, None] + floor  # [C, M, 3]
+    if config.q0 is None:  # the start tip first
+        tips = torch.cat([(mouths + start_offsets)[:, None], tips], dim=1)  # [C, K, 3]
+    if cloud_tip.shape[0] == 0:
+        raise LolgpsError(_cannot_point_down(arm, radius))
+    gap = torch.cdist(tips.reshape(-1, 3), cloud_tip).min(dim=-1)  # nearest sampled tip
+    score = gap.values.reshape(tips.shape[:2]).max(dim=-1).values  # [C]
+    near = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
+    reached = 0
+    chunks = [[0]] + [near[i : i + _VERIFIED] for i in range(0, len(near), _VERIFIED)]
+    for chosen in chunks[: 1 + _CHUNKS]:  # the preferred spot alone first, then in order
+        targets = vertical_peg_targets(tips[chosen].reshape(-1, 3), -arm.point_offsets[1][2])
+        seeds = cloud_q[gap.indices.reshape(tips.shape[:2])[chosen].reshape(-1)]
+        q, err = solve_ik_batch(
+            kin, arm, targets, config.limit_margin, 150, 6, seeds, group=tips.shape[1]
+        )
+        ok = (err <= config.ik_tolerance).reshape(len(chosen), -1)
+        for row, candidate in enumerate(chosen):
+            if bool(ok[row].all()):
+                return _geometry(arm, kin, config, mouths[candidate], start_offsets[candidate])
+        reached = max(reached, int(ok.sum(dim=-1).max()))
+    if reached == 0:
+        raise LolgpsError(_cannot_point_down(arm, radius))
+    spread = float((positions.max(dim=0).values - positions.min(dim=0).values).norm())
+    raise LolgpsError(
+        f"the {M} hole positions (spread {spread:.2f} m) and the start pose do not fit in the "
+        f"reach of this arm ({radius:.2f} m) with the peg pointing down: at best {reached} of "
+        f"{ok.shape[1]} reachable; use closer positions (--conditions, --stream) or a shorter "
+        f"peg (--peg-length)"
     )
+
+
+def _geometry(
+    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, mouth: Tensor, offset: Tensor
+) -> TaskGeometry:
+    """The nominal mouth and the start pose: ``config.q0``, or the IK solution furthest inside
+    the limits for the peg tip at ``mouth + offset``, pointing down."""
     if config.q0 is not None:
-        if len(config.q0) != arm.dof:
-            raise LolgpsError(f"--q0 needs {arm.dof} values, got {len(config.q0)}")
-        q0 = config.q0
-    else:
-        start = mouth + torch.tensor(config.start_offset, dtype=torch.float64, device=kin.device)
-        separation = -arm.point_offsets[1][2]
-        q, err = solve_ik(kin, arm, vertical_peg_targets(start, separation), config.limit_margin)
-        if err > config.ik_tolerance:
-            raise LolgpsError(
-                f"no start pose: the peg cannot point down at {start.tolist()} "
-                f"(IK error {err:.3f} m); the arm may be too short to reach the table"
-            )
-        q0 = tuple(q.tolist())
-    return TaskGeometry(nominal_mouth=tuple(mouth.tolist()), q0=q0)
+        return TaskGeometry(nominal_mouth=tuple(mouth.tolist()), q0=config.q0)
+    start = mouth + offset
+    targets = vertical_peg_targets(start, -arm.point_offsets[1][2])
+    q, err = solve_ik(kin, arm, targets, config.limit_margin)
+    if err > config.ik_tolerance:  # the screening solved it; a miss here is a numerical fluke
+        raise LolgpsError(f"no start pose: IK error {float(err):.3f} m at {start.tolist()}")
+    return TaskGeometry(nominal_mouth=tuple(mouth.tolist()), q0=tuple(q.tolist()))
+
+
+def _cannot_point_down(arm: ArmSpec, radius: float) -> str:
+    return (
+        f"no start pose: the peg cannot point down at the table anywhere within the arm's "
+        f"reach ({radius:.2f} m): the arm may be too short for the peg (--peg-length), or the "
+        f"peg may point along the wrong axis of {arm.ee_link!r} (--peg-axis, now "
+        f"{arm.peg_axis or 'carried by the URDF'}; or --ee-link)"
+    )
+
+
+def _candidates(
+    shoulder: Tensor, radius: float, positions: Tensor, config: PlacementConfig
+) -> tuple[Tensor, Tensor]:
+    """Nominal mouths ``[C, 3]`` to try, preferred first, and the start tip's offset from each
+    ``[C, 3]``.  A spot is ``shoulder + (rho R cos(a), rho R sin(a), -eta R)`` for azimuths a
+    about the base's +x and fractions (rho, eta) about the configured ones; each is tried as
+    it is, then shifted so that the positions' centre lies on it.  The start offset is turned
+    by a (so that "back" points towards the base), and scaled by f = 1, then 0.5 for arms too
+    short to lift the peg that high; the nearer (a, rho, eta, f) to (0, config, 1), the
+    earlier."""
+    centre = torch.nn.functional.pad(
+        (positions.min(dim=0).values + positions.max(dim=0).values) / 2, (0, 1)
+    )
+    grid = sorted(
+        (abs(a) / 45 + abs(r) / 0.1 + abs(e) / 0.1 + (1 - f) / 0.25, a, r, e, f)
+        for a in _AZIMUTHS
+        for r in _STEPS
+        for e in _STEPS
+        for f in _START_SCALES
+        if 0.1 <= config.reach_fraction + r <= 0.95
+    )
+    mouths, starts = [], []
+    dx, dy, dz = config.start_offset
+    for _, a, r, e, f in grid:
+        rho, eta = config.reach_fraction + r, config.mouth_below_shoulder + e
+        c, s = math.cos(math.radians(a)), math.sin(math.radians(a))
+        spot = shoulder + torch.tensor(
+            [rho * radius * c, rho * radius * s, -eta * radius],
+            dtype=torch.float64,
+            device=shoulder.device,
+        )
+        start = torch.tensor(
+            [f * (c * dx - s * dy), f * (s * dx + c * dy), f * dz],
+            dtype=torch.float64,
+            device=shoulder.device,
+        )
+        mouths += [spot, spot - centre]
+        starts += [start, start]
+    return torch.stack(mouths), torch.stack(starts)

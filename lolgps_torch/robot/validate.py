@@ -8,26 +8,29 @@ What is checked, each failure a :class:`LolgpsError` naming the file and the ele
 * the tree: unique link and joint names, each joint's parent and child defined, one root
   link, every link reachable from it (no cycles);
 * joints: a known type; at most one of each part (``<origin>``, ``<axis>``, ``<limit>``...);
-  finite numbers; a non-zero axis on moving joints; revolute and prismatic joints carry a
-  ``<limit>``; a ``<limit>`` has ``effort > 0`` and ``velocity >= 0`` (both required), and
-  ``lower < upper``; damping and friction are ``>= 0``;
+  finite numbers; a non-zero axis on moving joints; damping and friction are ``>= 0``.  The
+  ``<limit>`` of a joint the method actuates is checked by :func:`check_actuated_limit`
+  (``effort > 0``, ``velocity >= 0``, ``lower < upper``); other joints are locked or fixed,
+  and their limits mean nothing here (published descriptions put placeholders there);
 * inertia: any ``<inertial>`` holds exactly one ``<mass>`` (finite, ``>= 0``) and one
-  ``<inertia>`` with its six finite entries forming a positive semi-definite matrix.  A
-  *driven* link (the child of a non-fixed joint) must have one, with positive mass and a
-  positive-definite matrix, or the joint-space mass matrix is singular.  Links fixed to a
-  driven link may be massless (pybullet_data's Panda has two such links).  The triangle
-  inequality of the principal moments is not required: pybullet_data's xArm 6 breaks it by
-  13 % and simulates well;
+  ``<inertia>`` with six finite entries forming a positive semi-definite matrix (a principal
+  moment of 0 is a thin rod's, and physical).  A *driven* link (the child of a non-fixed
+  joint) must have one, with positive mass.  Links fixed to a driven link may be massless
+  (pybullet_data's Panda has two such links).  Principal moments that break the triangle
+  inequality ``I1 + I2 >= I3`` cannot belong to a rigid body but simulate well (pybullet_data's
+  xArm 6 breaks it by 13 %): they are warned about (:class:`ArmWarning`), as is a driven link
+  whose inertia is entirely zero;
 * materials: a name and, for a colour, four rgba numbers (pytorch-kinematics' parser
   stops without them);
 * shapes: each ``<visual>``/``<collision>`` has one ``<geometry>`` with exactly one shape of
-  positive finite size; a mesh's file exists (see :func:`resolve_mesh`).
+  positive finite size; a mesh names a file (whether it exists is the loader's concern: a
+  missing one is only a warning, since arm meshes are never needed here).
 """
 
 from __future__ import annotations
 
 import math
-import os
+import warnings
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -35,7 +38,6 @@ import numpy as np
 from lolgps_torch.errors import LolgpsError
 
 _JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar")
-_LIMITED = ("revolute", "prismatic")
 # a joint's optional parts: (required, optional) numeric attributes
 _JOINT_PARTS = {
     "dynamics": ((), ("damping", "friction")),
@@ -74,39 +76,63 @@ def validate_urdf(robot: ET.Element, path: str) -> str:
     driven = {
         child for child, (_, joint) in parents.items() if joints[joint].get("type") != "fixed"
     }
+    static = _welded_to(root, parents, joints)
     for material in robot.findall("material"):
         label = material.get("name")
         _check_material(material, f"{path}: material {label!r}" if label else path)
-    base_dir = os.path.dirname(os.path.abspath(path))
+    suspect = []
     for name, link in links.items():
         where = f"{path}: link {name!r}"
-        _check_inertial(link, where, driven=name in driven)
-        _check_shapes(link, where, base_dir)
+        suspect += _check_inertial(link, where, name, name in driven, name in static)
+        _check_shapes(link, where)
+    if suspect:
+        warnings.warn(
+            f"{path}: suspect inertia (kept as published): {'; '.join(suspect)}",
+            ArmWarning,
+            stacklevel=2,
+        )
     return root
 
 
-def resolve_mesh(name: str, base_dir: str) -> str | None:
-    """Absolute path of a mesh file, or None if it is not found.
+class ArmWarning(UserWarning):
+    """Something in an arm description that is legal but suspect, or unused and missing
+    (scripts print it as one ``warning:`` line)."""
 
-    ``package://pkg/rest`` is looked up as ``pkg/rest`` and ``rest`` in the URDF's folder and
-    its parent; ``file://`` and absolute paths are taken as they are; relative paths are
-    looked up in the URDF's folder and its parent.
-    """
-    if name.startswith("package://"):
-        rest = name[len("package://") :]
-        candidates = [rest, rest.split("/", 1)[-1]]  # with and without a ROS package name
-    elif name.startswith("file://"):
-        candidates = [name[len("file://") :]]
-    elif "://" in name or not name:
-        return None
-    else:
-        candidates = [name]
-    for candidate in candidates:
-        for folder in (base_dir, os.path.dirname(base_dir)):
-            full = os.path.join(folder, candidate)  # an absolute candidate ignores the folder
-            if os.path.isfile(full):
-                return full
-    return None
+
+def _check_limit_numbers(joint: ET.Element, kind: str, where: str) -> None:
+    """A moving joint's ``<limit>`` numbers are numbers (a fixed joint's are ignored)."""
+    limit = _optional_child(joint, "limit", where)
+    if limit is not None and kind != "fixed":
+        for attr in ("lower", "upper", "effort", "velocity"):
+            _number(limit, attr, where)
+
+
+def check_actuated_limit(joint: ET.Element, where: str) -> None:
+    """The ``<limit>`` of a joint the method actuates: effort and velocity present (as
+    pytorch-kinematics' parser insists), ``effort > 0`` (it bounds the commanded torque),
+    ``velocity >= 0`` and, on a revolute joint, ``lower < upper``."""
+    kind = joint.get("type")
+    limit = _optional_child(joint, "limit", where)
+    if limit is None:
+        if kind == "revolute":
+            raise LolgpsError(
+                f"{where}: a revolute joint needs a <limit lower=... upper=... effort=... "
+                f"velocity=...>; add one"
+            )
+        raise LolgpsError(f"{where}: <limit> missing; add <limit effort=... velocity=...>")
+    effort, velocity = (_required_numbers(limit, a, where, 1)[0] for a in ("effort", "velocity"))
+    lower, upper = (_number(limit, attr, where) for attr in ("lower", "upper"))
+    if kind == "revolute" and lower is not None and upper is not None and not lower < upper:
+        raise LolgpsError(
+            f"{where}: <limit> lower {lower} is not below upper {upper}; widen the range, or "
+            f"pick another --ee-link so that this joint is locked"
+        )
+    if effort <= 0:
+        raise LolgpsError(
+            f"{where}: <limit> effort must be positive, got {effort}; set the joint's torque limit"
+        )
+    if velocity < 0:
+        raise LolgpsError(f"{where}: <limit> velocity must not be negative, got {velocity}")
 
 
 def _named(robot: ET.Element, tag: str, path: str) -> dict[str, ET.Element]:
@@ -179,7 +205,7 @@ def _check_joint(joint: ET.Element, where: str) -> None:
     xyz = _required_numbers(axis, "xyz", where, 3) if axis is not None else (1.0, 0.0, 0.0)
     if kind != "fixed" and math.hypot(*xyz) < 1e-6:
         raise LolgpsError(f"{where}: <axis> xyz is (nearly) the zero vector")
-    _check_limit(joint, kind, where)
+    _check_limit_numbers(joint, kind, where)
     for tag, (required, optional) in _JOINT_PARTS.items():
         part = _optional_child(joint, tag, where)
         if part is None:
@@ -195,24 +221,6 @@ def _check_joint(joint: ET.Element, where: str) -> None:
         raise LolgpsError(f"{where}: <mimic> has no joint attribute")
 
 
-def _check_limit(joint: ET.Element, kind: str, where: str) -> None:
-    """Effort and velocity (both required, as pytorch-kinematics' parser insists), and
-    ``lower < upper`` on revolute and prismatic joints."""
-    limit = _optional_child(joint, "limit", where)
-    if limit is None:
-        if kind in _LIMITED:
-            raise LolgpsError(f"{where}: a {kind} joint needs a <limit>")
-        return
-    effort, velocity = (_required_numbers(limit, a, where, 1)[0] for a in ("effort", "velocity"))
-    lower, upper = (_number(limit, attr, where) for attr in ("lower", "upper"))
-    if kind in _LIMITED and lower is not None and upper is not None and not lower < upper:
-        raise LolgpsError(f"{where}: <limit> lower {lower} is not below upper {upper}")
-    if effort <= 0:
-        raise LolgpsError(f"{where}: <limit> effort must be positive, got {effort}")
-    if velocity < 0:
-        raise LolgpsError(f"{where}: <limit> velocity must not be negative, got {velocity}")
-
-
 def _check_material(material: ET.Element, where: str) -> None:
     """A name (pytorch-kinematics' parser needs one), and an rgba colour of four numbers."""
     if not material.get("name"):
@@ -225,32 +233,62 @@ def _check_material(material: ET.Element, where: str) -> None:
         raise LolgpsError(f"{where}: <texture> has no filename")
 
 
-def _check_inertial(link: ET.Element, where: str, driven: bool) -> None:
-    """Mass and inertia; a driven link needs both, positive (see the module docstring)."""
+def _welded_to(
+    root: str, parents: dict[str, tuple[str, str]], joints: dict[str, ET.Element]
+) -> set[str]:
+    """The links fixed to the root through fixed joints alone: they never move."""
+    welded = {root}
+    changed = True
+    while changed:
+        changed = False
+        for child, (parent, joint) in parents.items():
+            if child not in welded and parent in welded and joints[joint].get("type") == "fixed":
+                welded.add(child)
+                changed = True
+    return welded
+
+
+def _check_inertial(
+    link: ET.Element, where: str, name: str, driven: bool, static: bool
+) -> list[str]:
+    """Mass and inertia (see the module docstring); returns what is suspect, for a warning.
+    The inertia of a link welded to the fixed base never matters: there a matrix that is not
+    positive semi-definite is only suspect."""
     moves = "the link moves with its parent joint"
     inertial = _optional_child(link, "inertial", where)
     if inertial is None:
         if driven:
-            raise LolgpsError(f"{where}: <inertial> missing ({moves})")
-        return
+            raise LolgpsError(f"{where}: <inertial> missing ({moves}); add its mass and inertia")
+        return []
     here = f"{where}: <inertial>"
     _check_origin(_optional_child(inertial, "origin", here), here)
     mass = _required_numbers(_child(inertial, "mass", here), "value", here, 1)[0]
     element = _child(inertial, "inertia", here)
     xx, xy, xz, yy, yz, zz = (_required_numbers(element, a, here, 1)[0] for a in _INERTIA)
-    smallest = float(np.linalg.eigvalsh(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))[0])
+    moments = np.linalg.eigvalsh(np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]))
+    scale = max(abs(xx), abs(yy), abs(zz))
     if mass < 0:
         raise LolgpsError(f"{where}: mass must not be negative, got {mass}")
     if driven and mass == 0:
-        raise LolgpsError(f"{where}: mass must be positive ({moves}), got {mass}")
-    if driven and smallest <= 0:
-        raise LolgpsError(f"{where}: inertia is not positive definite ({moves})")
-    if smallest < -1e-9 * max(abs(xx), abs(yy), abs(zz)):
-        raise LolgpsError(f"{where}: inertia is not positive semi-definite")
+        raise LolgpsError(f"{where}: mass must be positive ({moves}), got {mass}; give its mass")
+    if moments[0] < -1e-9 * scale and static:
+        return [f"{name!r} (on the fixed base) inertia is not positive semi-definite"]
+    if moments[0] < -1e-9 * scale:
+        raise LolgpsError(
+            f"{where}: inertia is not positive semi-definite (principal moments "
+            f"{', '.join(f'{m:.3g}' for m in moments)}); correct ixx..izz"
+        )
+    if moments[0] + moments[1] < moments[2] * (1 - 1e-6):
+        return [
+            f"{name!r} principal moments break I1 + I2 >= I3 by {moments[2] - moments[0] - moments[1]:.2g}"
+        ]
+    if driven and scale == 0:
+        return [f"{name!r} (driven) has zero inertia"]
+    return []
 
 
-def _check_shapes(link: ET.Element, where: str, base_dir: str) -> None:
-    """One sized shape per ``<visual>``/``<collision>`` geometry; mesh files present."""
+def _check_shapes(link: ET.Element, where: str) -> None:
+    """One sized shape per ``<visual>``/``<collision>`` geometry; a mesh names its file."""
     for kind in ("visual", "collision"):
         for element in link.findall(kind):
             here = f"{where}: <{kind}>"
@@ -262,14 +300,13 @@ def _check_shapes(link: ET.Element, where: str, base_dir: str) -> None:
             if len(shapes) != 1:
                 tags = ", ".join(f"<{s.tag}>" for s in shapes) or "none"
                 raise LolgpsError(f"{here}: <geometry> needs exactly one shape, found {tags}")
-            _check_shape(shapes[0], here, base_dir)
+            _check_shape(shapes[0], here)
 
 
-def _check_shape(shape: ET.Element, where: str, base_dir: str) -> None:
+def _check_shape(shape: ET.Element, where: str) -> None:
     if shape.tag == "mesh":
-        filename = shape.get("filename", "")
-        if resolve_mesh(filename, base_dir) is None:
-            raise LolgpsError(f"{where}: mesh file {filename!r} not found")
+        if not shape.get("filename"):
+            raise LolgpsError(f"{where}: <mesh> has no filename")
         scale = _numbers(shape, "scale", where, 3)
         if scale is not None and not all(scale):
             raise LolgpsError(f"{where}: <mesh> scale has a zero entry")

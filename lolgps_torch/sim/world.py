@@ -59,6 +59,34 @@ class WorldConfig:
     damping_margin: float = 1.0
     max_joint_speed: float = 100.0
 
+    def __post_init__(self) -> None:
+        positive = {
+            "dt": self.dt,
+            "gravity": self.gravity,
+            "depth": self.depth,
+            "clearance_mouth": self.clearance_mouth,
+            "clearance_bottom": self.clearance_bottom,
+            "plate_thickness": self.plate_thickness,
+            "table_half_size": self.table_half_size,
+            "success_threshold": self.success_threshold,
+            "max_joint_speed": self.max_joint_speed,
+        }
+        for name, value in positive.items():
+            if not (math.isfinite(value) and value > 0):
+                raise LolgpsError(f"world {name} must be positive and finite, got {value}")
+        for name, value in (("friction", self.friction), ("damping_margin", self.damping_margin)):
+            if not (math.isfinite(value) and value >= 0):
+                raise LolgpsError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+        if self.substeps < 1 or self.T < 1:
+            raise LolgpsError(
+                f"world substeps and T must be at least 1, got {self.substeps}, {self.T}"
+            )
+        if self.clearance_bottom > self.clearance_mouth:
+            raise LolgpsError(
+                f"the hole's clearance at the floor ({self.clearance_bottom} m) exceeds that "
+                f"at the mouth ({self.clearance_mouth} m)"
+            )
+
 
 class PegWorld:
     """One PyBullet client with the arm, the table and the hole.  Not picklable: build it in

@@ -12,36 +12,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.data.run_folder import RunFolder, write_json
 from lolgps_torch.sweep.grid import Cell, Outcome, Plan
 
 CELL_FILE = "sweep_cell.json"
 LOG_FILE = "sweep.log"
-
-
-def read_json(path: Path) -> Any:
-    """The JSON in ``path``; raise :class:`LolgpsError` if unreadable.
-
-    :param path: the file
-    """
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise LolgpsError(f"cannot read {path}: {exc}") from None
-
-
-def write_json(path: Path, data: Any) -> None:
-    """Write ``data`` to ``path`` as JSON through a temporary sibling, so that a reader never
-    sees a partial file.
-
-    :param path: the file
-    :param data: JSON-serialisable data
-    """
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(data, indent=1) + "\n")
-    os.replace(tmp, path)
 
 
 def cell_state(folder: Path, evaluate: bool) -> str:
@@ -51,9 +27,10 @@ def cell_state(folder: Path, evaluate: bool) -> str:
     :param folder: the cell's folder
     :param evaluate: whether the sweep evaluates its cells
     """
-    if (folder / "summary.json").is_file():
-        return "evaluate" if evaluate and not (folder / "eval.json").is_file() else "done"
-    return "resume" if (folder / "config.json").is_file() else "new"
+    run = RunFolder(folder)
+    if run.summary_path.is_file():
+        return "evaluate" if evaluate and not run.eval_path.is_file() else "done"
+    return "resume" if run.config_path.is_file() else "new"
 
 
 def stream_command(cell: Cell, plan: Plan, resume: bool) -> list[str]:

@@ -10,7 +10,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from lolgps_torch.sweep.cells import CELL_FILE, read_json
+from lolgps_torch.data.run_folder import RunFolder, read_json
+from lolgps_torch.sweep.cells import CELL_FILE
 from lolgps_torch.sweep.grid import Cell, Outcome, Sweep
 
 # (key, markdown heading, format) of the aggregated metrics
@@ -50,18 +51,19 @@ def cell_metrics(folder: Path) -> dict[str, float | None] | None:
 
     :param folder: the cell folder
     """
-    if not (folder / "summary.json").is_file():
+    run = RunFolder(folder)
+    if not run.summary_path.is_file():
         return None
-    entries = read_json(folder / "summary.json")["conditions"]
-    samples = int(read_json(folder / "config.json")["stream"]["local"]["samples"])
+    entries = run.read_summary()["conditions"]
+    samples = int(run.read_config()["stream"]["local"]["samples"])
     row: dict[str, float | None] = {key: None for key, _, _ in METRICS}
     if entries:
         row["train_success"] = statistics.fmean(bool(e["policy_success_end"]) for e in entries)
     row["rollouts"] = float(sum(int(e["iterations"]) for e in entries) * samples)
     if (folder / CELL_FILE).is_file():
         row["wall_time"] = float(read_json(folder / CELL_FILE)["wall_time"])
-    if (folder / "eval.json").is_file():
-        row.update(eval_metrics(read_json(folder / "eval.json")))
+    if run.eval_path.is_file():
+        row.update(eval_metrics(read_json(run.eval_path)))
     return row
 
 

@@ -27,13 +27,13 @@ import statistics
 import tempfile
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, TypeVar
 
 import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, initial_controller, iterate
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill, optimal_variance
@@ -157,7 +157,7 @@ def bench_replay(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
     labels = Labels(initial_controller(task, LocalConfig()), None, 0)
     results: dict[str, float] = {"sample_cpu_s": sample}
     with tempfile.TemporaryDirectory() as folder:
-        replay = ReplayBuffer(Path(folder) / "replay.h5")
+        replay = ReplayBuffer(RunFolder(folder).replay_path)
         reference = 0.0
         for index, M in enumerate(sizes):
             n = index + 1

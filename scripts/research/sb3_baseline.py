@@ -32,7 +32,7 @@ import matplotlib
 import numpy as np
 
 from lolgps_torch.cli import run
-from lolgps_torch.data.run_folder import read_json, write_json
+from lolgps_torch.data.run_folder import RunFolder, read_json, write_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.gym_env import DEFAULT_URDF, NORMALIZED_ENV_ID, PegInsertionEnv
 
@@ -132,8 +132,8 @@ def gps_result(folder: Path, samples: int) -> dict[str, Any]:
     """The trajectory-centric learner's run: iterations, rollouts, rollouts up to the end of
     the first iteration with a successful rollout, time spent sampling, fitting and solving
     (s), and its per-iteration final distances."""
-    summary = read_json(folder / "summary.json")
-    metrics_path = folder / "metrics.jsonl"
+    summary = read_json(RunFolder(folder).summary_path)
+    metrics_path = RunFolder(folder).metrics_path
     try:
         lines = metrics_path.read_text().splitlines()
     except OSError as error:
