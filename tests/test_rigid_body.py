@@ -25,6 +25,13 @@ ARMS = {
     "panda": os.path.join(DATA, "franka_panda", "panda.urdf"),
     "xarm6": os.path.join(DATA, "xarm", "xarm6_robot.urdf"),
 }
+PUBLISHED = os.path.join(os.path.dirname(__file__), "data", "arms")
+CORPUS = [  # published descriptions as published: 6- and 5-DoF arms, grippers locked
+    os.path.join(PUBLISHED, "armer_xarm/data/xacro/robots/xarm6/xarm6.urdf"),
+    os.path.join(PUBLISHED, "trossen_descriptions/urdf/vx300s.urdf"),
+    os.path.join(PUBLISHED, "trossen_descriptions/urdf/wx200.urdf"),
+    os.path.join(DATA, "kuka_iiwa", "model.urdf"),
+]
 FAR = (5.0, 5.0, -3.0)  # a hole mouth far from every arm: free space
 
 
@@ -260,3 +267,27 @@ def test_linearize_is_the_jacobian_of_the_step() -> None:
         torch.testing.assert_close(F[i], torch.cat([Jx, Ju], -1), rtol=1e-9, atol=1e-9)
     xu = torch.cat([x, u], -1)
     torch.testing.assert_close((F @ xu[..., None]).squeeze(-1) + f0, step(x, u))
+
+
+@pytest.mark.parametrize("path", CORPUS, ids=lambda p: os.path.basename(p))
+def test_published_arms_match_pinocchio_and_pybullet(path: str) -> None:
+    """On published descriptions: RNEA and M against Pinocchio, and one control step's joint
+    velocity change against PyBullet's to 1e-6 relative."""
+    arm = load_arm(path)
+    _check_against_pinocchio(ArmDynamics(arm), arm)
+    config = WorldConfig()
+    world = PegWorld(arm, config, FAR)
+    rng = np.random.default_rng(8)
+    lower, upper, n = np.asarray(arm.lower), np.asarray(arm.upper), arm.dof
+    try:
+        q0 = lower + (upper - lower) * rng.uniform(0.4, 0.6, n)
+        for joint, qj, vj in zip(world.joint_ids, q0, rng.normal(0.0, 0.1, n), strict=True):
+            pb.resetJointState(world.body, joint, qj, vj, physicsClientId=world.client)
+        x0 = torch.as_tensor(world.observe())
+        u = _smooth_torques(arm, world, rng, 1)[0]
+        x1 = torch.as_tensor(world.step(u))
+    finally:
+        world.close()
+    predicted = ControlStep(arm, config)(x0, torch.as_tensor(u))
+    change = x1[n : 2 * n] - x0[n : 2 * n]
+    assert float((predicted[n : 2 * n] - x1[n : 2 * n]).norm() / change.norm()) < 1e-6
