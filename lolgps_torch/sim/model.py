@@ -23,8 +23,6 @@ The point features follow the state's definition (:mod:`lolgps_torch.state`): wi
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import torch
 from torch import Tensor
 
@@ -41,7 +39,7 @@ class ControlStep:
     """``x_{t+1} = f(x_t, u_t)`` of the world in free space, batched over leading dims.
 
     :param arm: the parsed arm. :param config: the world's settings (dt, substeps, gravity,
-        damping margin). :param locked: positions of locked joints (default 0).
+        damping margin).
     :param device: where the model's tensors live.
     """
 
@@ -49,14 +47,13 @@ class ControlStep:
         self,
         arm: ArmSpec,
         config: WorldConfig,
-        locked: Mapping[str, float] | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
         self.config, self.layout = config, StateLayout(arm.dof)
         self.h = config.dt / config.substeps
-        plain = ArmDynamics(arm, config.gravity, "pybullet", locked, device=device)
+        plain = ArmDynamics(arm, config.gravity, "pybullet", device=device)
         self.dynamics = ArmDynamics(
-            arm, config.gravity, "pybullet", locked, stabilising_inertia(plain, config), device
+            arm, config.gravity, "pybullet", None, stabilising_inertia(plain, config), device
         )
         self.effort = torch.tensor(arm.effort, dtype=torch.float64, device=self.dynamics.device)
 
