@@ -19,6 +19,7 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import ArmSpec, PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
+from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import Actor, Sampler
 from lolgps_torch.sim.world import WorldConfig
@@ -84,6 +85,14 @@ class PegTask:
             raise LolgpsError(f"{config.urdf}: the arm cannot be simulated: {message}") from None
         effort = torch.tensor(self.arm.effort, dtype=torch.float64)
         self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
+        self._model: ControlStep | None = None
+
+    @property
+    def model(self) -> ControlStep:
+        """The world's free-space control step as a torch function (built on first use)."""
+        if self._model is None:
+            self._model = ControlStep(self.arm, self.config.world, device=self.device)
+        return self._model
 
     @property
     def T(self) -> int:

@@ -56,6 +56,7 @@ STREAM_FLAGS = ConfigFlags(
         "pre-weight": ("policy.pre_weight",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),
+        "dynamics-prior": ("local.dynamics.prior",),
     },
     skip=("use_pre",),  # set by --method
 )

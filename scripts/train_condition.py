@@ -24,7 +24,7 @@ from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 
-LOCAL_FLAGS = ConfigFlags(LocalConfig())
+LOCAL_FLAGS = ConfigFlags(LocalConfig(), renames={"dynamics-prior": ("dynamics.prior",)})
 
 
 def parse_args() -> argparse.Namespace:

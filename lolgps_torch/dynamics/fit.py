@@ -7,12 +7,14 @@ time-first (``F: [T-1, dX, dX+dU]``). All steps are fitted in one batched linear
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import torch
 from torch import Tensor
 
+from lolgps_torch.dynamics.model_prior import Linearizer, ModelPrior
 from lolgps_torch.dynamics.prior import GMMPrior, NIWPrior
-from lolgps_torch.errors import LolgpsError, NumericalError
+from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
 from lolgps_torch.types import LinearDynamics
 
 
@@ -63,6 +65,9 @@ def gaussian_regression(
     return F, f, 0.5 * (cov + cov.mT)
 
 
+PriorSource = Literal["gmm", "model"]
+
+
 @dataclass(frozen=True)
 class DynamicsConfig:
     """Dynamics fitting (docs/ALGORITHM.md section 4); GMM and prior defaults from the original GPS.
@@ -82,6 +87,10 @@ class DynamicsConfig:
     :param prior_strength: multiplier of the prior's pseudo-counts m and n0.
     :param initial_state_var: diagonal regulariser of the initial-state covariance.
     :param seed: seed of the GMM's cold-start initialisation.
+    :param prior: gmm: the GMM prior alone; model: the arm's rigid-body model linearised at
+        each step's samples, mixed with the GMM prior (when use_prior) where the model does
+        not predict the samples (:class:`ModelPrior`).
+    :param model_tolerance: relative one-step error of the model at which its weight is 1/2.
     """
 
     use_prior: bool = True
@@ -96,6 +105,13 @@ class DynamicsConfig:
     prior_strength: float = 1.0
     initial_state_var: float = 1e-6
     seed: int = 0
+    prior: PriorSource = "gmm"
+    model_tolerance: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.prior not in get_args(PriorSource):
+            raise LolgpsError(f"prior {self.prior!r}: one of {get_args(PriorSource)}")
+        check_fields(self, {"model_tolerance": self.model_tolerance > 0})
 
 
 def prior_from_config(c: DynamicsConfig) -> GMMPrior:
@@ -122,15 +138,24 @@ class DynamicsFitter:
     t < T-1), evaluates it at the same samples and runs :func:`gaussian_regression`. The initial
     state is ``x0_mean = mean_n x_{n,0}``, ``x0_cov = cov_n x_{n,0} + initial_state_var I``
     (unbiased sample covariance). ``em_history`` holds the EM trace of the last update.
+    With ``prior="model"`` the GMM's prior is mixed into :class:`ModelPrior`'s, built on
+    ``model`` (the arm's linearised step).
     """
 
-    def __init__(self, config: DynamicsConfig | None = None) -> None:
+    def __init__(
+        self, config: DynamicsConfig | None = None, model: Linearizer | None = None
+    ) -> None:
         self.config = config if config is not None else DynamicsConfig()
         c = self.config
         self.prior: GMMPrior | None = None
         self.em_history: list[float] = []
         if c.use_prior:
             self.prior = prior_from_config(c)
+        self.model_prior: ModelPrior | None = None
+        if c.prior == "model":
+            if model is None:
+                raise LolgpsError("prior 'model' needs the arm's model to linearise")
+            self.model_prior = ModelPrior(model, c.prior_strength, c.model_tolerance)
 
     def update(self, x: Tensor, u: Tensor) -> LinearDynamics:
         """Update the prior with samples ``x: [N, T, dX]``, ``u: [N, T, dU]`` and fit to them."""
@@ -147,6 +172,8 @@ class DynamicsFitter:
         if self.prior is not None:
             self.em_history = self.prior.update(X, Y)
             prior = self.prior.evaluate(X, Y)
+        if self.model_prior is not None:
+            prior = self.model_prior.evaluate(X, Y, prior)
         F, f, cov = gaussian_regression(X, Y, prior, self.config.regression_reg)
         x0 = x[:, 0]  # [N, dX]
         x0_mean = x0.mean(0)

@@ -105,7 +105,8 @@ class LocalLearner:
         self.task, self.offset, self.config = task, offset, config
         self.generator = torch.Generator().manual_seed(seed)
         self.p_cur = initial_controller(task, config)
-        self.fitter = DynamicsFitter(config.dynamics)
+        model = task.model.linearize if config.dynamics.prior == "model" else None
+        self.fitter = DynamicsFitter(config.dynamics, model)
         self.step_mult = config.cstep.step_mult_init
         self.previous: Fit | None = None
         self.targets = task.targets([offset])[0]

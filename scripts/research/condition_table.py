@@ -23,10 +23,13 @@ from lolgps_torch.errors import LolgpsError
 TRAIN_CONDITION = Path(__file__).resolve().parents[1] / "train_condition.py"
 
 
-def learn(urdf: str, hole: tuple[float, float], seed: int, iterations: int, out: str) -> RunFolder:
-    """One run of scripts/train_condition.py into ``out``."""
+def learn(
+    urdf: str, hole: tuple[float, float], seed: int, iterations: int, out: str, prior: str
+) -> RunFolder:
+    """One run of scripts/train_condition.py into ``out`` with the dynamics prior ``prior``."""
     cmd = [sys.executable, str(TRAIN_CONDITION), "--urdf", urdf, "--hole", str(hole[0])]
     cmd += [str(hole[1]), "--seed", str(seed), "--iterations", str(iterations), "--out", out]
+    cmd += ["--dynamics-prior", prior]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise LolgpsError(f"{' '.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1]}")
@@ -46,6 +49,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--min-success", type=int, default=3)
+    parser.add_argument(
+        "--dynamics-prior", choices=("gmm", "model"), default="gmm", help="passed on"
+    )
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     if len(args.holes) % 2:
@@ -58,7 +64,7 @@ def main() -> None:
         for dx, dy in holes:
             for seed in args.seeds:
                 out = os.path.join(args.out, f"{arm}_{dx:+.3f}_{dy:+.3f}_s{seed}")
-                folder = learn(urdf, (dx, dy), seed, args.iterations, out)
+                folder = learn(urdf, (dx, dy), seed, args.iterations, out, args.dynamics_prior)
                 rates = [r["success_rate"] for r in folder.read_metrics()]
                 first = next(
                     (i for i, r in enumerate(rates) if r * 5 >= args.min_success - 1e-9), None

@@ -1,0 +1,123 @@
+"""The world's control step in free space as a differentiable torch function ``x' = f(x, u)``.
+
+:meth:`PegWorld.step <lolgps_torch.sim.world.PegWorld.step>` holds the torque
+``tau = clip(u + g(q_0), -effort, effort)`` (g the gravity compensation at the start of the
+step) for ``substeps`` physics steps of ``h = dt / substeps``. Each physics step of PyBullet's
+Featherstone solver is a semi-implicit Euler step,
+
+    ``qd <- qd + h M(q)^{-1} (tau - b qd + tau_damp(q, qd) - c(q, qd) - g(q))``,
+    ``q  <- q + h qd``,
+
+with b the URDF joint damping (applied by PyBullet at the velocity before the step) and
+``tau_damp`` Bullet's link damping (:meth:`ArmDynamics.link_damping`, coefficients 0.04, the
+default PyBullet leaves in place). The inertias are those PyBullet holds: the URDF's, zeroed
+where the triangle inequality fails, plus the rotor-like inertia the world adds where joint
+damping would be unstable (:meth:`PegWorld._stabilise_damping`, the same rule evaluated on
+this model's mass matrix at q = 0).
+
+The point features follow the state's definition (:mod:`lolgps_torch.state`): with
+``P(q)`` the world positions of the tip and top,
+``p' = p + P(q') - P(q)`` (the points are offsets from fixed targets) and
+``v' = (P(q') - P(q)) / dt``. Contact with the table and the hole is not modelled.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.rigid_body import ArmDynamics
+from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.state import StateLayout
+
+# btMultiBody's default linear and angular damping, which PyBullet does not change.
+BULLET_LINK_DAMPING = 0.04
+
+
+class ControlStep:
+    """``x_{t+1} = f(x_t, u_t)`` of the world in free space, batched over leading dims.
+
+    :param arm: the parsed arm. :param config: the world's settings (dt, substeps, gravity,
+        damping margin).
+    :param device: where the model's tensors live.
+    """
+
+    def __init__(
+        self,
+        arm: ArmSpec,
+        config: WorldConfig,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.config, self.layout = config, StateLayout(arm.dof)
+        self.h = config.dt / config.substeps
+        plain = ArmDynamics(arm, config.gravity, "pybullet", device=device)
+        self.dynamics = ArmDynamics(
+            arm, config.gravity, "pybullet", None, stabilising_inertia(plain, config), device
+        )
+        self.effort = torch.tensor(arm.effort, dtype=torch.float64, device=self.dynamics.device)
+
+    def __call__(self, x: Tensor, u: Tensor) -> Tensor:
+        """The next state ``[..., dX]`` from states ``x: [..., dX]`` and actions ``u: [..., dU]``."""
+        lay = self.layout
+        q, qd, moved = self._advance(x[..., lay.q], x[..., lay.qd], u)
+        return torch.cat([q, qd, x[..., lay.points] + moved, moved / self.config.dt], -1)
+
+    def linearize(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """``f(x, u) ~ F [x; u] + f0`` at states ``x: [B, dX]`` and actions ``u: [B, dU]``:
+        ``F = df/d[x; u]: [B, dX, dX+dU]`` by reverse-mode autograd, ``f0 = f(x, u) - F [x; u]``.
+
+        Only q, qd and u move the arm, so the Jacobian of ``(q', qd', P(q') - P(q))`` is taken
+        over those 3n inputs; the point columns are the identity (``p' = p + ...``) and the
+        point-velocity columns zero.
+        """
+        lay, n = self.layout, self.layout.n_joints
+        inputs = torch.cat([x[:, lay.q], x[:, lay.qd], u], -1)  # [B, 3n]
+
+        with torch.enable_grad():
+            z = inputs.detach().requires_grad_()
+            q, qd, delta = self._advance(z[:, :n], z[:, n : 2 * n], z[:, 2 * n :])
+            out = torch.cat([q, qd, delta], -1)  # [B, 2n + 6]
+            # one reverse pass per output row, batched: rows of eye as the cotangents
+            eye = torch.eye(out.shape[-1], dtype=x.dtype, device=x.device)
+            cotangents = eye[:, None, :].expand(-1, out.shape[0], -1)
+            (rows,) = torch.autograd.grad(out, z, cotangents, is_grads_batched=True)
+        J = rows.transpose(0, 1)  # [B, 2n + 6, 3n]
+        B, dX = x.shape[0], lay.dX
+        F = x.new_zeros(B, dX, dX + n)
+        joint_cols = list(range(2 * n)) + list(range(dX, dX + n))  # q, qd and u columns
+        F[:, : 2 * n, joint_cols] = J[:, : 2 * n]
+        F[:, lay.points, joint_cols] = J[:, 2 * n :]
+        F[:, lay.points, lay.points] = torch.eye(6, dtype=x.dtype, device=x.device)
+        F[:, lay.point_velocities, joint_cols] = J[:, 2 * n :] / self.config.dt
+        xu = torch.cat([x, u], -1)
+        f0 = self(x, u) - (F @ xu[..., None]).squeeze(-1)
+        return F, f0
+
+    def _advance(self, q: Tensor, qd: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Joint positions and velocities after one control step, and the points' move
+        ``P(q') - P(q): [..., 6]``."""
+        dyn = self.dynamics
+        frames = dyn.frames(q)
+        start = dyn.points(frames).flatten(-2)  # [..., 6]
+        zeros = torch.zeros_like(q)
+        gravity = dyn.inverse_dynamics_at(frames, zeros, zeros)
+        tau = torch.minimum(torch.maximum(u + gravity, -self.effort), self.effort)
+        for s in range(self.config.substeps):
+            if s > 0:
+                frames = dyn.frames(q)
+            wrench = dyn.link_damping(frames, qd, BULLET_LINK_DAMPING, BULLET_LINK_DAMPING)
+            qdd = dyn.forward_dynamics_at(frames, qd, tau - dyn.joint_damping * qd, wrench)
+            qd = qd + self.h * qdd
+            q = q + self.h * qd
+        return q, qd, dyn.points(dyn.frames(q)).flatten(-2) - start
+
+
+def stabilising_inertia(dynamics: ArmDynamics, config: WorldConfig) -> list[float]:
+    """Per actuated joint, the isotropic inertia the world adds to its child link:
+    ``max(0, margin b h - m)`` with m = ``1 / (M(0)^{-1})_jj`` the joint's effective inertia,
+    b its damping and h the physics step (see ``PegWorld._stabilise_damping``)."""
+    q = torch.zeros(dynamics.n, dtype=torch.float64, device=dynamics.device)
+    m = 1.0 / torch.diagonal(torch.linalg.inv(dynamics.mass_matrix(q)))
+    need = config.damping_margin * dynamics.joint_damping * config.dt / config.substeps
+    return torch.where(m < need, need - m, torch.zeros_like(m)).tolist()
