@@ -165,6 +165,18 @@ def task_config(args: argparse.Namespace) -> TaskConfig:
     return dataclasses.replace(config, urdf=args.urdf)
 
 
+def add_workers_argument(parser: argparse.ArgumentParser) -> None:
+    """``--workers``: the processes a batch of rollouts is spread over (PyBullet steps a world
+    on one core)."""
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="processes running each batch's rollouts, a world each; the results are the same "
+        "for any number (default: this machine's cores, %(default)s)",
+    )
+
+
 def check_device(name: str) -> torch.device:
     """The torch device ``name``, checked usable here; otherwise a :class:`LolgpsError`."""
     try:
