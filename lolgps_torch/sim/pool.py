@@ -61,6 +61,18 @@ def _failure(error: BaseException) -> BaseException:
     return error
 
 
+def _next_job(jobs: multiprocessing.queues.Queue[bytes | None]) -> bytes | None:
+    """The next job, or None once the main process asks to stop or has ended (a killed run's
+    workers do not outlive it)."""
+    parent = multiprocessing.parent_process()
+    while True:
+        try:
+            return jobs.get(timeout=1.0)
+        except queue.Empty:
+            if parent is not None and not parent.is_alive():
+                return None
+
+
 def _serve(setup: WorldSetup, jobs: multiprocessing.queues.Queue[bytes | None],
            results: multiprocessing.queues.Queue[bytes]) -> None:  # fmt: skip
     """A worker: build the world, then run ``(actor, offsets, rows)`` jobs until None, putting
@@ -71,7 +83,7 @@ def _serve(setup: WorldSetup, jobs: multiprocessing.queues.Queue[bytes | None],
         built: BaseException | None = None
     except Exception as error:  # reported with the first job, which is when the caller waits
         sampler, built = None, error
-    while (job := jobs.get()) is not None:
+    while (job := _next_job(jobs)) is not None:
         try:
             if sampler is None:
                 raise built if built is not None else RuntimeError("no world")
