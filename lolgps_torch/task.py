@@ -74,7 +74,7 @@ class PegTask:
         self, config: TaskConfig, n_worlds: int = 5, device: str = "cpu", workers: int = 1
     ) -> None:
         if workers < 1:
-            raise LolgpsError(f"--workers {workers}: must be at least 1")
+            raise LolgpsError(f"workers {workers}: must be at least 1")
         self.config = config
         self.device = torch.device(device)
         self.arm: ArmSpec = load_arm(config.urdf, config.ee_link, config.peg, config.package_path)

@@ -33,6 +33,7 @@ from lolgps_torch.cli import (
     read_offsets,
     run,
     task_config,
+    workers,
 )
 from lolgps_torch.data.records import ConditionSummary, DistillRecord, IterationRecord
 from lolgps_torch.data.run_folder import (
@@ -248,7 +249,7 @@ def main() -> None:
     args = parse_args()
     plan = plan_run(args)
     task = PegTask(
-        plan.task, plan.stream.local.samples, device=str(plan.device), workers=args.workers
+        plan.task, plan.stream.local.samples, device=str(plan.device), workers=workers(args)
     )
     try:  # the task's placement has checked every condition's reachability
         if not args.resume:

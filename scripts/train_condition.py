@@ -23,6 +23,7 @@ from lolgps_torch.cli import (
     check_device,
     run,
     task_config,
+    workers,
 )
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.data.run_folder import RunFolder, as_stored, portable_urdf, task_json
@@ -98,7 +99,7 @@ def main() -> None:
         raise LolgpsError(f"{folder.path} already holds a run; choose another --out")
     folder.check_writable()
     torch.manual_seed(args.seed)
-    task = PegTask(tcfg, config.samples, device=str(device), workers=args.workers)
+    task = PegTask(tcfg, config.samples, device=str(device), workers=workers(args))
     try:  # the placement has checked that the hole is reachable
         settings = {"hole": list(offset), "seed": args.seed, "iterations": args.iterations}
         record = {**settings, "task": task_json(tcfg, urdf_text), "local": asdict(config)}
