@@ -165,6 +165,38 @@ def task_config(args: argparse.Namespace) -> TaskConfig:
     return dataclasses.replace(config, urdf=args.urdf)
 
 
+WORKERS_VARIABLE = "LOLGPS_WORKERS"
+
+
+def add_workers_argument(parser: argparse.ArgumentParser) -> None:
+    """``--workers``: the processes a batch of rollouts is spread over (PyBullet steps a world
+    on one core); its default is ``$LOLGPS_WORKERS``, else the machine's cores."""
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="processes running each batch's rollouts, a world each; the results are the same "
+        f"for any number (default: ${WORKERS_VARIABLE}, else this machine's cores)",
+    )
+
+
+def workers(args: argparse.Namespace) -> int:
+    """The ``--workers`` value, or its default (:func:`add_workers_argument`), checked."""
+    if args.workers is not None:
+        value, source = args.workers, "--workers"
+    elif WORKERS_VARIABLE in os.environ:
+        text, source = os.environ[WORKERS_VARIABLE], WORKERS_VARIABLE
+        try:
+            value = int(text)
+        except ValueError:
+            raise LolgpsError(f"{source}={text!r}: expected a whole number") from None
+    else:
+        value, source = os.cpu_count() or 1, "--workers"
+    if value < 1:
+        raise LolgpsError(f"{source} {value}: must be at least 1")
+    return int(value)
+
+
 def check_device(name: str) -> torch.device:
     """The torch device ``name``, checked usable here; otherwise a :class:`LolgpsError`."""
     try:

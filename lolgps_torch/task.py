@@ -20,8 +20,9 @@ from lolgps_torch.robot.arm import ArmSpec, PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
 from lolgps_torch.sim.model import ControlStep
+from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.pybullet_quiet import pb
-from lolgps_torch.sim.rollout import Actor, Sampler
+from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout
 from lolgps_torch.types import Trajectories
@@ -60,9 +61,20 @@ class TaskConfig:
 
 
 class PegTask:
-    """Samples rollouts at hole offsets and scores them with the l12 cost."""
+    """Samples rollouts at hole offsets and scores them with the l12 cost.
 
-    def __init__(self, config: TaskConfig, n_worlds: int = 5, device: str = "cpu") -> None:
+    :param n_worlds: worlds of ``sampler``, which steps them in lockstep for callers that batch
+        (evaluation, rendering).
+    :param workers: processes that :meth:`sample` spreads its rollouts over (1: this process);
+        the rollouts are the same for any number. Rollouts on a CUDA device stay in this
+        process.
+    """
+
+    def __init__(
+        self, config: TaskConfig, n_worlds: int = 5, device: str = "cpu", workers: int = 1
+    ) -> None:
+        if workers < 1:
+            raise LolgpsError(f"workers {workers}: must be at least 1")
         self.config = config
         self.device = torch.device(device)
         self.arm: ArmSpec = load_arm(config.urdf, config.ee_link, config.peg, config.package_path)
@@ -83,6 +95,9 @@ class PegTask:
         except (pb.error, torch.linalg.LinAlgError) as error:
             message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
             raise LolgpsError(f"{config.urdf}: the arm cannot be simulated: {message}") from None
+        setup = WorldSetup(self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0)
+        parallel = workers > 1 and self.device.type == "cpu"
+        self.pool = RolloutPool(setup, workers) if parallel else None
         effort = torch.tensor(self.arm.effort, dtype=torch.float64)
         self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
         self._model: ControlStep | None = None
@@ -132,8 +147,13 @@ class PegTask:
         return (1.0 / torch.diagonal(Minv)).to(dtype=torch.float64, device=self.device)
 
     def sample(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
-        """One rollout per offset, scored by the cost."""
-        return self.score(*self.sampler.rollout(act, offsets), offsets)
+        """One rollout per offset, each run alone (on the worker processes, if any), scored by
+        the cost."""
+        if self.pool is None:
+            x, u, final = rollout_rows(self.sampler, act, offsets, range(len(offsets)))
+        else:
+            x, u, final = (part.to(self.device) for part in self.pool.rollout(act, offsets))
+        return self.score(x, u, final, offsets)
 
     def score(
         self, x: Tensor, u: Tensor, final: Tensor, offsets: Sequence[tuple[float, float]]
@@ -147,6 +167,8 @@ class PegTask:
 
     def close(self) -> None:
         self.sampler.close()
+        if self.pool is not None:
+            self.pool.close()
 
 
 def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:

@@ -28,10 +28,12 @@ from lolgps_torch.cli import (
     ConfigFlags,
     Position,
     add_task_arguments,
+    add_workers_argument,
     check_device,
     read_offsets,
     run,
     task_config,
+    workers,
 )
 from lolgps_torch.data.records import ConditionSummary, DistillRecord, IterationRecord
 from lolgps_torch.data.run_folder import (
@@ -103,6 +105,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--resume", action="store_true", help="continue an interrupted run in --out"
     )
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    add_workers_argument(parser)
     return parser.parse_args(argv)
 
 
@@ -245,7 +248,9 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
 def main() -> None:
     args = parse_args()
     plan = plan_run(args)
-    task = PegTask(plan.task, n_worlds=plan.stream.local.samples, device=str(plan.device))
+    task = PegTask(
+        plan.task, plan.stream.local.samples, device=str(plan.device), workers=workers(args)
+    )
     try:  # the task's placement has checked every condition's reachability
         if not args.resume:
             plan.folder.start(plan.config, plan.urdf_text)

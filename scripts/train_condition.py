@@ -16,7 +16,15 @@ from dataclasses import asdict, replace
 
 import torch
 
-from lolgps_torch.cli import ConfigFlags, add_task_arguments, check_device, run, task_config
+from lolgps_torch.cli import (
+    ConfigFlags,
+    add_task_arguments,
+    add_workers_argument,
+    check_device,
+    run,
+    task_config,
+    workers,
+)
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.data.run_folder import RunFolder, as_stored, portable_urdf, task_json
 from lolgps_torch.errors import LolgpsError
@@ -50,6 +58,7 @@ def parse_args() -> argparse.Namespace:
         help="stop once at least 3 of 5 samples (60%%) succeed",
     )
     parser.add_argument("--device", default="cpu")
+    add_workers_argument(parser)
     args = parser.parse_args()
     if args.iterations < 1:
         raise LolgpsError(f"--iterations {args.iterations}: must be >= 1")
@@ -90,7 +99,7 @@ def main() -> None:
         raise LolgpsError(f"{folder.path} already holds a run; choose another --out")
     folder.check_writable()
     torch.manual_seed(args.seed)
-    task = PegTask(tcfg, n_worlds=config.samples, device=str(device))
+    task = PegTask(tcfg, config.samples, device=str(device), workers=workers(args))
     try:  # the placement has checked that the hole is reachable
         settings = {"hole": list(offset), "seed": args.seed, "iterations": args.iterations}
         record = {**settings, "task": task_json(tcfg, urdf_text), "local": asdict(config)}

@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 
 os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported; inherited by subprocesses
+os.environ["LOLGPS_WORKERS"] = "1"  # scripts roll out in their own process, as tests do
 
 import fcntl
 import json

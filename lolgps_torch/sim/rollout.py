@@ -1,4 +1,5 @@
-"""Rollouts: N worlds stepped in lockstep, the actions computed for all N in one torch call.
+"""Rollouts: N worlds stepped in lockstep, the actions computed for all N in one torch call;
+or each rollout alone (:func:`rollout_rows`), the form that worker processes share out.
 
 The only numpy in the algorithm path is here, at the simulator boundary: the state of each
 world is read into one ``[N, dX]`` array, turned into a tensor, the acting controller maps it
@@ -7,7 +8,8 @@ to ``[N, dU]`` torques, and these go back to the worlds.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -17,20 +19,41 @@ from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 from lolgps_torch.types import LinearGaussian
 
-# act(t, x, rows) -> u: states x [n, dX] of the batch's rollouts ``rows`` -> torques [n, dU]
-Actor = Callable[[int, Tensor, slice], Tensor]
+
+class Actor(Protocol):
+    """``act(t, x, rows) -> u``: states ``x: [n, dX]`` of the batch's rollouts ``rows`` at step
+    ``t`` -> torques ``[n, dU]``."""
+
+    def __call__(self, t: int, x: Tensor, rows: slice, /) -> Tensor: ...
+
+
+class LinearGaussianActor(NamedTuple):
+    """``u_t = K_t x_t + k_t + shifted_t`` for the batch's rows ``rows``; plain data, so that it
+    can be sent to a worker process."""
+
+    K: Tensor  # [T, dU, dX]
+    k: Tensor  # [T, dU]
+    shifted: Tensor  # [N, T, dU]: chol(cov_t) eps_t per rollout
+
+    def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
+        return x @ self.K[t].T + self.k[t] + self.shifted[rows, t]
 
 
 def linear_gaussian_actor(controller: LinearGaussian, noise: Tensor) -> Actor:
     """``u_t = K_t x_t + k_t + chol(cov_t) eps_t`` with pre-drawn noise ``eps: [N, T, dU]``."""
-    K, k = controller.K.detach(), controller.k.detach()
     L = controller.chol().detach()
     shifted = torch.einsum("tuv,ntv->ntu", L, noise)  # [N, T, dU]
+    return LinearGaussianActor(controller.K.detach(), controller.k.detach(), shifted)
 
-    def act(t: int, x: Tensor, rows: slice) -> Tensor:
-        return x @ K[t].T + k[t] + shifted[rows, t]
 
-    return act
+class RowActor(NamedTuple):
+    """Row ``row`` of a batch's actor, acting alone in a one-rollout batch."""
+
+    actor: Actor
+    row: int
+
+    def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
+        return self.actor(t, x, slice(self.row, self.row + 1))
 
 
 class Sampler:
@@ -85,3 +108,15 @@ class Sampler:
     def close(self) -> None:
         for w in self.worlds:
             w.close()
+
+
+def rollout_rows(
+    sampler: Sampler, act: Actor, offsets: Sequence[tuple[float, float]], rows: Sequence[int]
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The rollouts of the batch's ``rows`` (row i at ``offsets[i]``), each run alone in
+    ``sampler``'s first world, stacked as :meth:`Sampler.rollout` returns them. A rollout's
+    result depends on its row alone, not on which rows share the call, so any split of a
+    batch over processes gives the same rollouts."""
+    parts = [sampler.rollout(RowActor(act, row), [offsets[row]]) for row in rows]
+    x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
+    return x, u, final

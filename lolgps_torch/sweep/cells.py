@@ -42,7 +42,7 @@ def stream_command(cell: Cell, plan: Plan, resume: bool) -> list[str]:
     """
     command = [sys.executable, os.path.join(plan.scripts, "run_stream.py")]
     command += ["--urdf", cell.urdf, "--method", cell.method, "--seed", str(cell.seed)]
-    command += ["--out", os.path.join(plan.out, cell.name)]
+    command += ["--out", os.path.join(plan.out, cell.name), "--workers", "1"]  # a CPU a cell
     if cell.stream != "paper":
         command += ["--stream", cell.stream]
     if plan.conditions is not None:

@@ -1,7 +1,15 @@
 """Benchmarks, each reported as a ratio to a reference measured in the same run.
 
     python scripts/bench/bench.py [--urdf robots/kuka_peg.urdf] [--repeats 5] [--only NAME ...]
+        [--reference REV]
 
+- default:   the default stream (``run_stream.py --urdf URDF``, seed 0) run twice, with one
+             rollout worker and with the default (this machine's cores): its wall time, and
+             the sums of its parts from metrics.jsonl (sampling, dynamics fits, C-steps,
+             S-steps with their closed-loop checks) as ratios to the one-worker run's
+             sampling; with ``--reference REV``, the same stream at git revision REV (checked
+             out into a temporary worktree) first, in the same run, and each wall time as a
+             ratio to it.
 - physics:   raw PyBullet stepping rate of this world (substeps/s: the same worlds, the arm
              held at q0 by constant gravity torques sent every substep, nothing else) against
              the rollout pipeline (initial controller, smoothed noise, gravity compensation,
@@ -19,6 +27,8 @@ Medians over the repeats; the machine is noisy, so compare ratios, not seconds.
 from __future__ import annotations
 
 import argparse
+import functools
+import os
 import statistics
 import subprocess
 import sys
@@ -171,7 +181,58 @@ def bench_sweep(task: PegTask, repeats: int) -> dict[str, float]:
     return {"sequential_s": sequential, "sweep_s": swept, "speedup": sequential / swept}
 
 
+PARTS = {"sampling": "time_sample", "fit": "time_fit", "C-step": "time_cstep",
+         "S-step": "time_distill"}  # fmt: skip
+
+
+def _default_stream(root: Path, urdf: str, out: Path, flags: list[str]) -> dict[str, float]:
+    """Run the default stream of the checkout at ``root`` into ``out``: wall time, and its
+    parts summed from metrics.jsonl (seconds)."""
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    command = [sys.executable, str(root / "scripts" / "run_stream.py"), "--urdf", urdf,
+               "--out", str(out), *flags]  # fmt: skip
+    t0 = time.perf_counter()
+    subprocess.run(command, check=True, capture_output=True, env=env, cwd=root)
+    wall = time.perf_counter() - t0
+    records = RunFolder(out).read_metrics()
+    parts = {name: sum(r.get(key, 0.0) for r in records) for name, key in PARTS.items()}
+    return {"wall": wall, **parts}
+
+
+def bench_default(task: PegTask, repeats: int, reference: str | None = None) -> dict[str, float]:
+    """The default stream's parts as ratios to its sampling with one worker, and its wall time
+    with one worker and with the default number (and at ``reference``, if given)."""
+    root = Path(__file__).resolve().parents[2]
+    urdf = str(Path(task.config.urdf).resolve())
+    results: dict[str, float] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        base = None
+        if reference is not None:
+            tree = Path(tmp) / "reference"
+            subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(tree),
+                            reference], check=True, capture_output=True)  # fmt: skip
+            try:
+                base = _default_stream(tree, urdf, Path(tmp) / "ref", [])
+            finally:
+                subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force",
+                                str(tree)], check=True, capture_output=True)  # fmt: skip
+            results["reference_wall_s"] = base["wall"]
+        one = _default_stream(root, urdf, Path(tmp) / "one", ["--workers", "1"])
+        default = _default_stream(root, urdf, Path(tmp) / "default", [])
+    results["wall_s (1 worker)"] = one["wall"]
+    results[f"wall_s ({os.cpu_count()} workers)"] = default["wall"]
+    for name in PARTS:
+        results[f"{name} / sampling"] = one[name] / one["sampling"]
+    algorithm = one["fit"] + one["C-step"] + one["S-step"]
+    results["fit + C-step + S-step / sampling"] = algorithm / one["sampling"]
+    results["sampling (default workers) / (1 worker)"] = default["sampling"] / one["sampling"]
+    if base is not None:
+        results["wall (default workers) / reference"] = default["wall"] / base["wall"]
+    return results
+
+
 BENCHES = {
+    "default": bench_default,
     "physics": bench_physics,
     "algorithm": bench_algorithm,
     "stream": bench_stream,
@@ -186,7 +247,13 @@ def main() -> None:
     parser.add_argument("--urdf", default="robots/kuka_peg.urdf")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--only", nargs="*", choices=sorted(BENCHES), default=None)
+    parser.add_argument(
+        "--reference",
+        default=None,
+        help="git revision whose default stream the default bench also times, in the same run",
+    )
     args = parser.parse_args()
+    BENCHES["default"] = functools.partial(bench_default, reference=args.reference)
     task = PegTask(TaskConfig(urdf=args.urdf), n_worlds=5)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
     for name in args.only or BENCHES:

@@ -1,0 +1,158 @@
+"""Rollouts shared out over worker processes, each holding a world of its own.
+
+PyBullet steps a world on one core, so a batch of rollouts (an iteration's N samples, or the
+policy's noiseless check at every learnt position) is split into ``workers`` contiguous blocks
+of rows, one per process. Every rollout runs alone (:func:`~lolgps_torch.sim.rollout.rollout_rows`),
+so the batch's result is the same for any number of workers, one included.
+
+A PyBullet client cannot be pickled: each worker builds its world from plain data
+(:class:`WorldSetup`) when it starts, and receives the acting controller as plain data (the
+actors of :mod:`lolgps_torch.sim.rollout` and :mod:`lolgps_torch.policy.actor` are named tuples
+of tensors). The processes start at the first batch, so a run that stops on bad input before
+sampling starts none, and they end with :meth:`RolloutPool.close` or with the main process.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import multiprocessing.process
+import multiprocessing.queues
+import pickle
+import queue
+import traceback
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
+from lolgps_torch.sim.world import WorldConfig
+
+Position = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class WorldSetup:
+    """What a worker needs to build a world identical to the main process's: the arm, the
+    world settings, and the placement's nominal hole mouth (m) and start pose (rad)."""
+
+    arm: ArmSpec
+    config: WorldConfig
+    nominal_mouth: tuple[float, ...]
+    q0: tuple[float, ...]
+
+    def sampler(self) -> Sampler:
+        """One world in this process."""
+        return Sampler(self.arm, self.config, self.nominal_mouth, self.q0, 1)
+
+
+def _failure(error: BaseException) -> BaseException:
+    """``error`` as the main process will re-raise it: itself when it pickles (a
+    :class:`LolgpsError` or a :class:`NumericalError` keeps its type), else a RuntimeError
+    with the worker's traceback."""
+    try:
+        pickle.loads(pickle.dumps(error))
+    except Exception:
+        return RuntimeError("a rollout worker failed:\n" + traceback.format_exc())
+    return error
+
+
+def _next_job(jobs: multiprocessing.queues.Queue[bytes | None]) -> bytes | None:
+    """The next job, or None once the main process asks to stop or has ended (a killed run's
+    workers do not outlive it)."""
+    parent = multiprocessing.parent_process()
+    while True:
+        try:
+            return jobs.get(timeout=1.0)
+        except queue.Empty:
+            if parent is not None and not parent.is_alive():
+                return None
+
+
+def _serve(setup: WorldSetup, jobs: multiprocessing.queues.Queue[bytes | None],
+           results: multiprocessing.queues.Queue[bytes]) -> None:  # fmt: skip
+    """A worker: build the world, then run ``(actor, offsets, rows)`` jobs until None, putting
+    the rollouts (or the exception that stopped them) on ``results``."""
+    torch.set_num_threads(1)
+    try:
+        sampler: Sampler | None = setup.sampler()
+        built: BaseException | None = None
+    except Exception as error:  # reported with the first job, which is when the caller waits
+        sampler, built = None, error
+    while (job := _next_job(jobs)) is not None:
+        try:
+            if sampler is None:
+                raise built if built is not None else RuntimeError("no world")
+            act, offsets, rows = pickle.loads(job)
+            result: Any = rollout_rows(sampler, act, offsets, rows)
+        except Exception as error:
+            result = _failure(error)
+        results.put(pickle.dumps(result))
+    if sampler is not None:
+        sampler.close()
+
+
+class RolloutPool:
+    """``workers`` processes with a world each, started at the first batch.
+
+    :param setup: the worlds to build.
+    :param workers: processes (at least 2; one worker is the main process's own sampler).
+    """
+
+    def __init__(self, setup: WorldSetup, workers: int) -> None:
+        if workers < 2:
+            raise LolgpsError(f"a rollout pool needs at least 2 workers, got {workers}")
+        self.setup, self.workers = setup, workers
+        self._procs: list[tuple[Any, Any, Any]] = []  # (process, jobs, results)
+
+    def _start(self) -> None:
+        context = multiprocessing.get_context("spawn")
+        for _ in range(self.workers):
+            jobs, results = context.Queue(), context.Queue()
+            proc = context.Process(target=_serve, args=(self.setup, jobs, results), daemon=True)
+            proc.start()
+            self._procs.append((proc, jobs, results))
+
+    def rollout(self, act: Actor, offsets: Sequence[Position]) -> tuple[Tensor, Tensor, Tensor]:
+        """The batch's rollouts, row i at ``offsets[i]`` acted on by ``act``'s row i, as
+        :meth:`Sampler.rollout` returns them (CPU tensors)."""
+        if not self._procs:
+            self._start()
+        n = len(offsets)
+        blocks = [b.tolist() for b in torch.arange(n).tensor_split(min(self.workers, n))]
+        used = self._procs[: len(blocks)]
+        for (_, jobs, _), rows in zip(used, blocks, strict=True):
+            jobs.put(pickle.dumps((act, list(offsets), rows)))
+        parts = [self._receive(proc, results) for proc, _, results in used]
+        failures = [p for p in parts if isinstance(p, BaseException)]
+        if failures:
+            raise failures[0]
+        x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
+        return x, u, final
+
+    @staticmethod
+    def _receive(proc: multiprocessing.process.BaseProcess, results: Any) -> Any:
+        """The worker's next result; a worker that died is a :class:`LolgpsError`."""
+        while True:
+            try:
+                return pickle.loads(results.get(timeout=1.0))
+            except queue.Empty:
+                if not proc.is_alive():
+                    raise LolgpsError(
+                        f"a rollout worker process ended (exit status {proc.exitcode})"
+                    ) from None
+
+    def close(self) -> None:
+        """Stop the workers (each closes its world)."""
+        for proc, jobs, _ in self._procs:
+            if proc.is_alive():
+                jobs.put(None)
+        for proc, _, _ in self._procs:
+            proc.join(timeout=5.0)
+            if proc.is_alive():
+                proc.terminate()
+        self._procs = []

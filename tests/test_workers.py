@@ -1,0 +1,88 @@
+"""Rollouts spread over worker processes (``--workers``): the same results as in one process."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import torch
+
+from lolgps_torch.controllers import smoothed_noise
+from lolgps_torch.errors import NumericalError
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, initial_controller, iterate
+from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
+from lolgps_torch.sim.rollout import LinearGaussianActor, linear_gaussian_actor
+from lolgps_torch.task import PegTask, TaskConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+OFFSETS = [(0.0, 0.0), (0.01, -0.01), (-0.02, 0.02)]
+
+
+@pytest.fixture(scope="module")
+def tasks() -> Iterator[tuple[PegTask, PegTask]]:
+    config = TaskConfig(str(ROOT / "robots" / "kuka_peg.urdf"))
+    one, two = PegTask(config, workers=1), PegTask(config, workers=2)
+    yield one, two
+    one.close()
+    two.close()
+
+
+def test_rollouts_are_the_same_for_one_and_two_workers(tasks: tuple[PegTask, PegTask]) -> None:
+    one, two = tasks
+    noise = smoothed_noise(3, one.T, one.layout.dU, 2.0, torch.Generator().manual_seed(3))
+    policy = GaussianPolicy(one.layout.dX, one.layout.dU, PolicyConfig(), one.device)
+    policy.trained = True
+    actors = [
+        linear_gaussian_actor(initial_controller(one, LocalConfig()), noise),
+        policy_actor(policy, noise),
+        policy_actor(policy),
+    ]
+    for actor in actors:
+        a, b = one.sample(actor, OFFSETS), two.sample(actor, OFFSETS)
+        assert a.x.abs().sum() > 0 and not torch.equal(a.x[0], a.x[1])  # distinct rollouts
+        for field in ("x", "u", "cost", "final_distance", "final_state"):
+            assert torch.equal(getattr(a, field), getattr(b, field)), field
+
+
+def test_iterations_are_the_same_for_one_and_two_workers(
+    tasks: tuple[PegTask, PegTask],
+) -> None:
+    """Sampling, the dynamics fit and the C-step, twice: the controllers agree bit for bit."""
+    controllers = []
+    for task in tasks:
+        learner = LocalLearner(task, (0.01, 0.0), LocalConfig(), seed=7)
+        for i in range(2):
+            iterate(learner, learner.p_cur, None, False, (0, i, 0.0))
+        controllers.append(learner.p_cur)
+    assert torch.equal(controllers[0].K, controllers[1].K)
+    assert torch.equal(controllers[0].k, controllers[1].k)
+
+
+def test_a_blow_up_in_a_worker_is_the_numerical_error_of_the_batch(
+    tasks: tuple[PegTask, PegTask],
+) -> None:
+    task = tasks[1]
+    actor = linear_gaussian_actor(
+        initial_controller(task, LocalConfig()),
+        torch.zeros(2, task.T, task.layout.dU, dtype=torch.float64),
+    )
+    bad = LinearGaussianActor(actor.K, torch.full_like(actor.k, float("nan")), actor.shifted)
+    with pytest.raises(NumericalError, match="non-finite action"):
+        task.sample(bad, OFFSETS[:2])
+    assert task.sample(actor, OFFSETS[:2]).x.isfinite().all()  # the pool still works
+
+
+def test_workers_flag_is_checked_before_any_work(tmp_path: Path) -> None:
+    script = str(ROOT / "scripts" / "run_stream.py")
+    out = str(tmp_path / "run")
+    proc = subprocess.run(
+        [sys.executable, script, "--workers", "0", "--out", out],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["error: --workers 0: must be at least 1"]
