@@ -46,6 +46,8 @@ ATTACHED_PEG_TIP = "lolgps_peg_tip"
 _ACTUATED = ("revolute", "continuous")
 # a prefix of an element's or attribute's name, as in <drake:member> or drake:acceleration="..."
 _PREFIXED = re.compile(r"(?:<|</|\s)([A-Za-z_][\w.-]*):[A-Za-z_][\w.-]*(?=[\s=/>])")
+# mesh file extensions PyBullet reads (any case)
+_MESH_FORMATS = (".stl", ".obj", ".dae", ".cdf", ".vtk")
 _INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 # words published descriptions use in the joint names of grippers and hands
 _GRIPPER_WORDS = ("finger", "grip", "jaw", "knuckle", "claw", "thumb")
@@ -533,8 +535,10 @@ def _drop_unused_shapes(
     tree: ET.Element, path: str, package_path: Sequence[str], peg_link: str
 ) -> None:
     """Drop the collision shapes of every link but the peg, resolve mesh filenames, and drop
-    the shapes whose mesh is not found (one :class:`ArmWarning` names the first)."""
+    the shapes whose mesh is not found, or is in a format PyBullet cannot read (it refuses the
+    whole URDF for one such mesh); one :class:`ArmWarning` for each kind names the first."""
     missing: list[str] = []
+    unreadable: list[str] = []
     for link in tree.findall("link"):
         for element in link.findall("collision") if link.get("name") != peg_link else []:
             link.remove(element)
@@ -542,12 +546,25 @@ def _drop_unused_shapes(
             mesh = element.find("geometry/mesh")
             if mesh is None:
                 continue
-            resolved = resolve_mesh(mesh.get("filename", ""), path, package_path)
+            name = mesh.get("filename", "")
+            if os.path.splitext(name)[1].lower() not in _MESH_FORMATS:
+                unreadable.append(name)
+                link.remove(element)
+                continue
+            resolved = resolve_mesh(name, path, package_path)
             if resolved:
                 mesh.set("filename", resolved)
             else:
-                missing.append(mesh.get("filename", ""))
+                missing.append(name)
                 link.remove(element)
+    if unreadable:
+        warnings.warn(
+            f"{path}: {len(unreadable)} mesh file(s) in a format PyBullet cannot read, e.g. "
+            f"{unreadable[0]!r} (it reads {', '.join(_MESH_FORMATS)}); the arm is loaded "
+            f"without them (they are not needed to learn)",
+            ArmWarning,
+            stacklevel=3,
+        )
     if missing:
         warnings.warn(
             f"{path}: {len(missing)} mesh file(s) not found, e.g. {missing[0]!r}; the arm is "
