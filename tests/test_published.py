@@ -171,8 +171,10 @@ def test_unnamed_visual_materials_are_named(tmp_path: Path) -> None:
     names = [m.get("name") for m in ET.fromstring(arm.urdf_text).iter("material")]
     assert names and all(names)
     top = f'<material name=""><color rgba="1 0 0 1"/></material>{_chain(("j1", "j2"))}'
-    with pytest.raises(LolgpsError, match="<material> has no name"):
-        load_arm(str(_toy(tmp_path, top, "top.urdf")))
+    nameless = _chain(("j1", "j2"), visual.replace(' name=""', ""))
+    for i, body in enumerate((top, nameless)):  # as ROS's parser, which accepts name=""
+        with pytest.raises(LolgpsError, match="<material> has no name"):
+            load_arm(str(_toy(tmp_path, body, f"bad{i}.urdf")))
 
 
 def test_meshes_pybullet_cannot_read_are_dropped_with_one_warning(tmp_path: Path) -> None:
