@@ -20,6 +20,7 @@ import pybullet_data
 import pytest
 import torch
 
+from lolgps_torch.data.run_folder import portable_urdf
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
@@ -253,3 +254,20 @@ def test_fuzzed_tool_extensions_load_or_give_one_error(tmp_path: Path, seed: int
         assert _fk_gap(task, 2) < 1e-6
     finally:
         task.close()
+
+
+def test_run_folder_copy_of_a_description_with_undeclared_prefixes_loads(tmp_path: Path) -> None:
+    """The run folder's copy (meshes made absolute) is parsed with the prefixes declared, and
+    loads as the original does."""
+    folder = tmp_path / "ur5e"
+    (folder / "visual").mkdir(parents=True)
+    text = UR5E.read_text()
+    mesh = re.search(r'filename="(visual/[^"]+)"', text)
+    assert mesh is not None
+    (folder / mesh.group(1)).write_text("o empty\n")
+    (folder / "ur5e.urdf").write_text(text)
+    copy = portable_urdf(str(folder / "ur5e.urdf"))
+    assert str(folder / mesh.group(1)) in copy
+    (tmp_path / "arm.urdf").write_text(copy)
+    arm, _ = _load_quietly(tmp_path / "arm.urdf")
+    assert arm.joint_names == _load_quietly(UR5E)[0].joint_names

@@ -223,7 +223,7 @@ def _parse(path: str, package_path: Sequence[str]) -> tuple[bytes, ET.Element, y
         raise LolgpsError(f"URDF not found: {path}")
     with open(path, "rb") as fh:
         raw = fh.read()
-    text = _declare_prefixes(raw.decode("utf-8", errors="replace"))
+    text = declare_prefixes(raw.decode("utf-8", errors="replace"))
     if "<!ENTITY" in text:
         raise LolgpsError(f"{path}: URDF declares XML entities; they are not resolved")
     try:
@@ -244,7 +244,7 @@ def _parse(path: str, package_path: Sequence[str]) -> tuple[bytes, ET.Element, y
     return raw, tree, robot, root
 
 
-def _declare_prefixes(text: str) -> str:
+def declare_prefixes(text: str) -> str:
     """``text`` with a namespace declared on ``<robot>`` for every prefix it uses undeclared.
 
     Descriptions written for one tool carry that tool's extensions under a prefix they often
