@@ -195,16 +195,19 @@ def test_a_robot_finger_whose_joints_are_all_finger_joints_is_an_arm(tmp_path: P
     assert arm.joint_names == names and arm.ee_link == "l3"
 
 
-def test_the_tool_frame_is_preferred_to_a_gripper_base_as_deep(tmp_path: Path) -> None:
-    """Two links fixed to the wrist, equally deep: the gripper's base (fingers below it, on
-    prismatic joints) is listed first, the tool frame (nothing below) is the end effector."""
+def test_the_tool_frame_is_preferred_to_a_gripper_base_and_a_wrist_camera(tmp_path: Path) -> None:
+    """Two links fixed to the wrist, equally deep: the gripper's base (a finger below it on a
+    prismatic joint, a camera fixed deeper) is listed first, the tool frame (nothing below)
+    is the end effector, as on dexmate's Vega arms."""
     body = _chain(("j1", "j2", "j3"))
-    for link in ("grasp_base", "tool0", "left_finger_link"):
+    for link in ("grasp_base", "tool0", "left_finger_link", "wrist_camera_link"):
         body += LINK.format(n=link, extra="")
-    body += '<joint name="grasp_joint" type="fixed"><parent link="l3"/><child link="grasp_base"/></joint>'
-    body += (
-        '<joint name="tool0_joint" type="fixed"><parent link="l3"/><child link="tool0"/></joint>'
-    )
+    for name, parent, child in (
+        ("grasp_joint", "l3", "grasp_base"),
+        ("tool0_joint", "l3", "tool0"),
+        ("camera_joint", "grasp_base", "wrist_camera_link"),
+    ):
+        body += f'<joint name="{name}" type="fixed"><parent link="{parent}"/><child link="{child}"/></joint>'
     body += JOINT.format(
         n="left_finger",
         t="prismatic",

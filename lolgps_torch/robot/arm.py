@@ -51,6 +51,8 @@ _MESH_FORMATS = (".stl", ".obj", ".dae", ".cdf", ".vtk")
 _INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 # words published descriptions use in the joint names of grippers and hands
 _GRIPPER_WORDS = ("finger", "grip", "jaw", "knuckle", "claw", "thumb")
+# words in the link names of sensors mounted on a wrist, which are no tool frame
+_SENSOR_WORDS = ("camera", "optical", "imu", "lidar", "laser", "depth")
 # rpy that turns the point frame's +z onto each supported peg axis of the end-effector link.
 _AXIS_RPY = {
     "x": (0.0, math.pi / 2, 0.0),
@@ -309,7 +311,7 @@ def _detect_ee_link(robot: yourdfpy.URDF, root: str, path: str, grippers: bool =
     below which the tree splits into branches no deeper than the path so far (a hand or
     gripper) or has no actuated joint left; then take the deepest link fixed to it (a flange,
     tool or TCP frame; among equally deep ones, one with no child link), skipping gripper
-    parts.  Gripper joints (:func:`_is_gripper`), mimic and prismatic joints never count,
+    parts and wrist cameras.  Gripper joints (:func:`_is_gripper`), mimic and prismatic joints never count,
     unless ``grippers`` is False: that is the second try when the first passes no actuated
     joint (a robot finger's joints are all named ``finger_...``).  Two equally deep arms are
     an error naming where each ends.
@@ -365,14 +367,16 @@ def _tool_frame(
     link: str,
     skipped: Callable[[yourdfpy.Joint], bool],
 ) -> str:
-    """The deepest link fixed to ``link`` by joints not ``skipped``, breadth first; among
-    equally deep ones a frame with nothing below it (a tool frame, not a gripper's base), then
-    the first found; ``link`` itself if there is none."""
+    """The deepest link fixed to ``link`` by joints not ``skipped``, breadth first, leaving out
+    sensors (a wrist camera's links, by :data:`_SENSOR_WORDS`); among equally deep ones a frame
+    with nothing below it (a tool frame, not a gripper's base), then the first found; ``link``
+    itself if there is none."""
     fixed, frontier = [(0, link)], [(0, link)]
     while frontier:
         level, here = frontier.pop(0)
         for j in children.get(here, []):
-            if j.type == "fixed" and not skipped(j):
+            sensor = any(word in j.child.lower() for word in _SENSOR_WORDS)
+            if j.type == "fixed" and not skipped(j) and not sensor:
                 fixed.append((level + 1, j.child))
                 frontier.append((level + 1, j.child))
     return max(fixed, key=lambda item: (item[0], item[1] not in children))[1]
