@@ -196,14 +196,15 @@ def test_a_robot_finger_whose_joints_are_all_finger_joints_is_an_arm(tmp_path: P
 
 
 def test_the_tool_frame_is_preferred_to_a_gripper_base_and_a_wrist_camera(tmp_path: Path) -> None:
-    """Two links fixed to the wrist, equally deep: the gripper's base (a finger below it on a
-    prismatic joint, a camera fixed deeper) is listed first, the tool frame (nothing below)
-    is the end effector, as on dexmate's Vega arms."""
+    """Links fixed to the wrist, equally deep: the gripper's base (a finger below it on a
+    prismatic joint, a camera fixed deeper) and a range sensor are listed first, the tool
+    frame (nothing below) is the end effector, as on dexmate's Vega arms and Baxter."""
     body = _chain(("j1", "j2", "j3"))
-    for link in ("grasp_base", "tool0", "left_finger_link", "wrist_camera_link"):
+    for link in ("grasp_base", "hand_range_link", "tool0", "left_finger_link", "wrist_camera_link"):
         body += LINK.format(n=link, extra="")
     for name, parent, child in (
         ("grasp_joint", "l3", "grasp_base"),
+        ("range_joint", "l3", "hand_range_link"),
         ("tool0_joint", "l3", "tool0"),
         ("camera_joint", "grasp_base", "wrist_camera_link"),
     ):

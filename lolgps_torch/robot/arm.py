@@ -52,7 +52,7 @@ _INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 # words published descriptions use in the joint names of grippers and hands
 _GRIPPER_WORDS = ("finger", "grip", "jaw", "knuckle", "claw", "thumb")
 # words in the link names of sensors mounted on a wrist, which are no tool frame
-_SENSOR_WORDS = ("camera", "optical", "imu", "lidar", "laser", "depth")
+_SENSOR_WORDS = ("camera", "optical", "imu", "accel", "lidar", "laser", "range", "depth")
 # rpy that turns the point frame's +z onto each supported peg axis of the end-effector link.
 _AXIS_RPY = {
     "x": (0.0, math.pi / 2, 0.0),
