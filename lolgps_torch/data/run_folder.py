@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.robot.arm import declare_prefixes
 from lolgps_torch.robot.packages import resolve_mesh
 from lolgps_torch.task import TaskConfig, task_config_from_dict
 
@@ -105,10 +106,11 @@ def portable_urdf(path: str, package_path: Sequence[str] = ()) -> str:
     """The URDF at ``path`` as text that reads the same from any folder: every mesh filename
     that resolves (:func:`~lolgps_torch.robot.packages.resolve_mesh`) made absolute;
     without such meshes, the file's text unchanged. PyBullet and yourdfpy accept absolute
-    filenames."""
+    filenames. Undeclared namespace prefixes are declared first
+    (:func:`~lolgps_torch.robot.arm.declare_prefixes`)."""
     try:
         text = Path(path).read_text()
-        tree = ET.fromstring(text)
+        tree = ET.fromstring(declare_prefixes(text))
     except OSError as error:
         raise LolgpsError(f"cannot read URDF {path}: {error.strerror or error}") from None
     except ET.ParseError as error:

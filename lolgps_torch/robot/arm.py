@@ -24,9 +24,10 @@ import hashlib
 import io
 import math
 import os
+import re
 import warnings
 import xml.etree.ElementTree as ET
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
@@ -43,9 +44,15 @@ CARRIED_PEG_TIP = "peg_tip"
 ATTACHED_PEG = "lolgps_peg"
 ATTACHED_PEG_TIP = "lolgps_peg_tip"
 _ACTUATED = ("revolute", "continuous")
+# a prefix of an element's or attribute's name, as in <drake:member> or drake:acceleration="..."
+_PREFIXED = re.compile(r"(?:<|</|\s)([A-Za-z_][\w.-]*):[A-Za-z_][\w.-]*(?=[\s=/>])")
+# mesh file extensions PyBullet reads (any case)
+_MESH_FORMATS = (".stl", ".obj", ".dae", ".cdf", ".vtk")
 _INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 # words published descriptions use in the joint names of grippers and hands
 _GRIPPER_WORDS = ("finger", "grip", "jaw", "knuckle", "claw", "thumb")
+# words in the link names of sensors mounted on a wrist, which are no tool frame
+_SENSOR_WORDS = ("camera", "optical", "imu", "accel", "lidar", "laser", "range", "depth")
 # rpy that turns the point frame's +z onto each supported peg axis of the end-effector link.
 _AXIS_RPY = {
     "x": (0.0, math.pi / 2, 0.0),
@@ -218,7 +225,7 @@ def _parse(path: str, package_path: Sequence[str]) -> tuple[bytes, ET.Element, y
         raise LolgpsError(f"URDF not found: {path}")
     with open(path, "rb") as fh:
         raw = fh.read()
-    text = raw.decode("utf-8", errors="replace")
+    text = declare_prefixes(raw.decode("utf-8", errors="replace"))
     if "<!ENTITY" in text:
         raise LolgpsError(f"{path}: URDF declares XML entities; they are not resolved")
     try:
@@ -228,7 +235,7 @@ def _parse(path: str, package_path: Sequence[str]) -> tuple[bytes, ET.Element, y
     root = validate_urdf(tree, path)
     try:
         robot = yourdfpy.URDF.load(
-            io.BytesIO(raw),
+            io.BytesIO(text.encode("utf-8")),
             build_scene_graph=False,
             load_meshes=False,
             load_collision_meshes=False,
@@ -237,6 +244,23 @@ def _parse(path: str, package_path: Sequence[str]) -> tuple[bytes, ET.Element, y
     except Exception as exc:  # yourdfpy raises assorted types on schema errors
         raise LolgpsError(f"{path}: not a valid URDF ({type(exc).__name__}: {exc})") from None
     return raw, tree, robot, root
+
+
+def declare_prefixes(text: str) -> str:
+    """``text`` with a namespace declared on ``<robot>`` for every prefix it uses undeclared.
+
+    Descriptions written for one tool carry that tool's extensions under a prefix they often
+    do not declare (``<limit drake:acceleration=...>``, ``<drake:collision_filter_group>``);
+    the XML is then not well formed, though the URDF readers skip what they do not know.  The
+    declared elements and attributes are dropped later (:func:`_portable_text`)."""
+    used = set(_PREFIXED.findall(text)) - {"xml", "xmlns"}
+    declared = set(re.findall(r"xmlns:([A-Za-z_][\w.-]*)\s*=", text))
+    missing = sorted(used - declared)
+    start = re.search(r"<robot\b", text)
+    if not missing or start is None:
+        return text
+    names = "".join(f' xmlns:{p}="urn:undeclared:{p}"' for p in missing)
+    return text[: start.end()] + names + text[start.end() :]
 
 
 def _is_arm_joint(j: yourdfpy.Joint) -> bool:
@@ -282,64 +306,85 @@ def _is_gripper(j: yourdfpy.Joint) -> bool:
     return any(word in j.name.lower() for word in _GRIPPER_WORDS)
 
 
-def _detect_ee_link(robot: yourdfpy.URDF, root: str, path: str) -> str:
+def _detect_ee_link(robot: yourdfpy.URDF, root: str, path: str, grippers: bool = True) -> str:
     """The end of the arm: follow the actuated joints down from the root and stop at the link
     below which the tree splits into branches no deeper than the path so far (a hand or
     gripper) or has no actuated joint left; then take the deepest link fixed to it (a flange,
-    tool or TCP frame), skipping gripper parts.  Gripper joints (:func:`_is_gripper`),
-    mimic and prismatic joints never count.  Two equally deep arms are an error naming them.
+    tool or TCP frame; among equally deep ones, one with no child link), skipping gripper
+    parts and wrist cameras.  Gripper joints (:func:`_is_gripper`), mimic and prismatic joints never count,
+    unless ``grippers`` is False: that is the second try when the first passes no actuated
+    joint (a robot finger's joints are all named ``finger_...``).  Two equally deep arms are
+    an error naming where each ends.
     """
     children: dict[str, list[yourdfpy.Joint]] = {}
     for j in robot.robot.joints:
         children.setdefault(j.parent, []).append(j)
 
+    def skipped(j: yourdfpy.Joint) -> bool:
+        return grippers and _is_gripper(j)
+
     @functools.cache
     def depth(link: str) -> int:  # most actuated joints on a path below link
-        arm = [j for j in children.get(link, []) if not _is_gripper(j)]
+        arm = [j for j in children.get(link, []) if not skipped(j)]
         return max((_is_arm_joint(j) + depth(j.child) for j in arm), default=0)
 
     def branches(link: str) -> list[tuple[int, str]]:
-        arm = [j for j in children.get(link, []) if not _is_gripper(j)]
+        arm = [j for j in children.get(link, []) if not skipped(j)]
         found = [(_is_arm_joint(j) + depth(j.child), j.child) for j in arm]
         return [(d, c) for d, c in found if d]
 
-    def tip(link: str) -> str:
+    def descend(link: str, passed: int) -> tuple[str, int]:
+        """Down from ``link`` (``passed`` arm joints above it) to where the arm ends."""
         while branches(link):
-            link = max(branches(link))[1]
-        return link
+            found = branches(link)
+            best = max(d for d, _ in found)
+            deepest = [c for d, c in found if d == best]
+            if len(found) > 1 and passed >= best:
+                break  # a hand below the arm
+            if len(deepest) > 1:
+                ends = [
+                    _tool_frame(
+                        children, descend(c, passed + _below_arm_joint(robot, c))[0], skipped
+                    )
+                    for c in deepest
+                ]
+                raise LolgpsError(
+                    f"{path}: the description has {len(deepest)} arms, ending at "
+                    f"{', '.join(ends)}: name one with --ee-link"
+                )
+            passed += _below_arm_joint(robot, deepest[0])
+            link = deepest[0]
+        return link, passed
 
-    link, passed = root, 0
-    while branches(link):
-        found = branches(link)
-        best = max(d for d, _ in found)
-        deepest = [c for d, c in found if d == best]
-        if len(found) > 1 and passed >= best:
-            break  # a hand below the arm
-        if len(deepest) > 1:
-            raise LolgpsError(
-                f"{path}: the description has {len(deepest)} arms, ending at "
-                f"{', '.join(tip(c) for c in deepest)}: name one with --ee-link"
-            )
-        passed += _is_arm_joint(robot.joint_map[_parent_joint_name(robot, deepest[0])])
-        link = deepest[0]
-    return _deepest_fixed(children, link)
+    link, passed = descend(root, 0)
+    if passed == 0 and grippers:
+        return _detect_ee_link(robot, root, path, grippers=False)
+    return _tool_frame(children, link, skipped)
 
 
-def _deepest_fixed(children: dict[str, list[yourdfpy.Joint]], link: str) -> str:
-    """The deepest link hanging from ``link`` by fixed, non-gripper joints (the first found,
-    breadth first, among equally deep ones); ``link`` itself if there is none."""
+def _tool_frame(
+    children: dict[str, list[yourdfpy.Joint]],
+    link: str,
+    skipped: Callable[[yourdfpy.Joint], bool],
+) -> str:
+    """The deepest link fixed to ``link`` by joints not ``skipped``, breadth first, leaving out
+    sensors (a wrist camera's links, by :data:`_SENSOR_WORDS`); among equally deep ones a frame
+    with nothing below it (a tool frame, not a gripper's base), then the first found; ``link``
+    itself if there is none."""
     fixed, frontier = [(0, link)], [(0, link)]
     while frontier:
         level, here = frontier.pop(0)
         for j in children.get(here, []):
-            if j.type == "fixed" and not _is_gripper(j):
+            sensor = any(word in j.child.lower() for word in _SENSOR_WORDS)
+            if j.type == "fixed" and not skipped(j) and not sensor:
                 fixed.append((level + 1, j.child))
                 frontier.append((level + 1, j.child))
-    return max(fixed, key=lambda item: item[0])[1]
+    return max(fixed, key=lambda item: (item[0], item[1] not in children))[1]
 
 
-def _parent_joint_name(robot: yourdfpy.URDF, link: str) -> str:
-    return next(j.name for j in robot.robot.joints if j.child == link)
+def _below_arm_joint(robot: yourdfpy.URDF, link: str) -> bool:
+    """Whether ``link`` hangs from an actuated joint (:func:`_is_arm_joint`)."""
+    return _is_arm_joint(next(j for j in robot.robot.joints if j.child == link))
 
 
 def _lock_joints(tree: ET.Element, keep: set[str]) -> None:
@@ -434,10 +479,16 @@ def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg
     names what is missing), transmission/gazebo elements (unused here) dropped, and URDF
     defaults written out where the two readers differ: axis (1, 0, 0) on moving joints that
     omit it (pytorch-kinematics would take (0, 0, 1)), and zero mass and inertia on links
-    without ``<inertial>`` (PyBullet would give them 1 kg and 1 kg m^2)."""
+    without ``<inertial>`` (PyBullet would give them 1 kg and 1 kg m^2).  Other tools'
+    namespaced extensions (``drake:...``) are dropped, elements and attributes alike, and
+    materials of visuals published with an empty name are named (``lolgps_material_N``)."""
     for child in list(tree):
         if child.tag in ("transmission", "gazebo"):
             tree.remove(child)
+    _drop_namespaced(tree)
+    for i, material in enumerate(tree.findall("link/visual/material")):
+        if not material.get("name"):
+            material.set("name", f"lolgps_material_{i}")
     _drop_unused_shapes(tree, path, package_path, peg_link)
     for joint in tree.findall("joint"):
         if joint.get("type") != "fixed" and joint.find("axis") is None:
@@ -448,6 +499,17 @@ def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg
             ET.SubElement(inertial, "mass", value="0")
             ET.SubElement(inertial, "inertia", {key: "0" for key in _INERTIA_KEYS})
     return ET.tostring(tree, encoding="unicode")
+
+
+def _drop_namespaced(element: ET.Element) -> None:
+    """Remove, below ``element``, every element and attribute in an XML namespace."""
+    for key in [k for k in element.attrib if k.startswith("{")]:
+        del element.attrib[key]
+    for child in list(element):
+        if child.tag.startswith("{"):
+            element.remove(child)
+        else:
+            _drop_namespaced(child)
 
 
 def _auto_axis(chain: list[yourdfpy.Joint], actuated: list[yourdfpy.Joint]) -> str:
@@ -477,8 +539,10 @@ def _drop_unused_shapes(
     tree: ET.Element, path: str, package_path: Sequence[str], peg_link: str
 ) -> None:
     """Drop the collision shapes of every link but the peg, resolve mesh filenames, and drop
-    the shapes whose mesh is not found (one :class:`ArmWarning` names the first)."""
+    the shapes whose mesh is not found, or is in a format PyBullet cannot read (it refuses the
+    whole URDF for one such mesh); one :class:`ArmWarning` for each kind names the first."""
     missing: list[str] = []
+    unreadable: list[str] = []
     for link in tree.findall("link"):
         for element in link.findall("collision") if link.get("name") != peg_link else []:
             link.remove(element)
@@ -486,12 +550,25 @@ def _drop_unused_shapes(
             mesh = element.find("geometry/mesh")
             if mesh is None:
                 continue
-            resolved = resolve_mesh(mesh.get("filename", ""), path, package_path)
+            name = mesh.get("filename", "")
+            if os.path.splitext(name)[1].lower() not in _MESH_FORMATS:
+                unreadable.append(name)
+                link.remove(element)
+                continue
+            resolved = resolve_mesh(name, path, package_path)
             if resolved:
                 mesh.set("filename", resolved)
             else:
-                missing.append(mesh.get("filename", ""))
+                missing.append(name)
                 link.remove(element)
+    if unreadable:
+        warnings.warn(
+            f"{path}: {len(unreadable)} mesh file(s) in a format PyBullet cannot read, e.g. "
+            f"{unreadable[0]!r} (it reads {', '.join(_MESH_FORMATS)}); the arm is loaded "
+            f"without them (they are not needed to learn)",
+            ArmWarning,
+            stacklevel=3,
+        )
     if missing:
         warnings.warn(
             f"{path}: {len(missing)} mesh file(s) not found, e.g. {missing[0]!r}; the arm is "

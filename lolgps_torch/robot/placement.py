@@ -222,7 +222,7 @@ def place_task(
     gap = torch.cdist(tips.reshape(-1, 3), cloud_tip).min(dim=-1)  # nearest sampled tip
     score = gap.values.reshape(tips.shape[:2]).max(dim=-1).values  # [C]
     near = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
-    reached = 0
+    reached, holes_only = 0, False  # most targets reached; all holes reached but not the start
     chunks = [[0]] + [near[i : i + _VERIFIED] for i in range(0, len(near), _VERIFIED)]
     for chosen in chunks[: 1 + _CHUNKS]:  # the preferred spot alone first, then in order
         targets = vertical_peg_targets(tips[chosen].reshape(-1, 3), -arm.point_offsets[1][2])
@@ -235,8 +235,16 @@ def place_task(
             if bool(ok[row].all()):
                 return _geometry(arm, kin, config, mouths[candidate], start_offsets[candidate])
         reached = max(reached, int(ok.sum(dim=-1).max()))
+        holes_only = holes_only or (config.q0 is None and bool(ok[:, 1:].all(dim=-1).any()))
     if reached == 0:
         raise LolgpsError(_cannot_point_down(arm, radius))
+    if holes_only:
+        raise LolgpsError(
+            f"no start pose: the hole positions are reachable with the peg pointing down, but "
+            f"not the start {config.start_offset[2]:.2f} m (or half that) above the hole within "
+            f"this arm's reach ({radius:.2f} m): use a shorter peg (--peg-length) or give the "
+            f"start pose (--q0)"
+        )
     spread = float((positions.max(dim=0).values - positions.min(dim=0).values).norm())
     raise LolgpsError(
         f"the {M} hole positions (spread {spread:.2f} m) and the start pose do not fit in the "

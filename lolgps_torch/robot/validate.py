@@ -21,7 +21,8 @@ What is checked, each failure a :class:`LolgpsError` naming the file and the ele
   xArm 6 breaks it by 13 %): they are warned about (:class:`ArmWarning`), as is a driven link
   whose inertia is entirely zero;
 * materials: a name and, for a colour, four rgba numbers (pytorch-kinematics' parser
-  stops without them);
+  stops without them); a visual's material may have an empty name (xacro writes
+  ``name=""``), which the loader replaces;
 * shapes: each ``<visual>``/``<collision>`` has one ``<geometry>`` with exactly one shape of
   positive finite size; a mesh names a file (whether it exists is the loader's concern: a
   missing one is only a warning, since arm meshes are never needed here).
@@ -79,7 +80,7 @@ def validate_urdf(robot: ET.Element, path: str) -> str:
     static = _welded_to(root, parents, joints)
     for material in robot.findall("material"):
         label = material.get("name")
-        _check_material(material, f"{path}: material {label!r}" if label else path)
+        _check_material(material, f"{path}: material {label!r}" if label else path, top_level=True)
     suspect = []
     for name, link in links.items():
         where = f"{path}: link {name!r}"
@@ -221,9 +222,12 @@ def _check_joint(joint: ET.Element, where: str) -> None:
         raise LolgpsError(f"{where}: <mimic> has no joint attribute")
 
 
-def _check_material(material: ET.Element, where: str) -> None:
-    """A name (pytorch-kinematics' parser needs one), and an rgba colour of four numbers."""
-    if not material.get("name"):
+def _check_material(material: ET.Element, where: str, top_level: bool) -> None:
+    """A name (pytorch-kinematics' parser needs one; as in ROS's parser a visual's material
+    may name itself ``""``, as xacro output does, and the loader replaces that), and an rgba
+    colour of four numbers."""
+    name = material.get("name")
+    if name is None or (top_level and not name):
         raise LolgpsError(f"{where}: <material> has no name")
     color = _optional_child(material, "color", where)
     if color is not None:
@@ -295,7 +299,7 @@ def _check_shapes(link: ET.Element, where: str) -> None:
             _check_origin(_optional_child(element, "origin", here), here)
             material = _optional_child(element, "material", here)
             if material is not None:
-                _check_material(material, here)
+                _check_material(material, here, top_level=False)
             shapes = list(_child(element, "geometry", here))
             if len(shapes) != 1:
                 tags = ", ".join(f"<{s.tag}>" for s in shapes) or "none"

@@ -1,0 +1,277 @@
+"""More published arm descriptions, as published (``tests/data/arms`` from airo-models,
+robot_properties_fingers and rtb-data; pybullet_data's other arms): each loads, agrees with
+PyBullet, places the default stream and runs an iteration, or stops with one error line
+naming what to change; and the loader's handling of what they carry (other tools' undeclared
+XML prefixes, unnamed visual materials, meshes PyBullet cannot read, robot fingers whose
+every joint is named ``finger_...``, tool frames beside gripper bases), fuzzed."""
+
+from __future__ import annotations
+
+import random
+import re
+import subprocess
+import sys
+import warnings
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pybullet_data
+import pytest
+import torch
+
+from lolgps_torch.data.run_folder import portable_urdf
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+from lolgps_torch.robot.arm import ArmSpec, load_arm
+from lolgps_torch.robot.placement import PlacementConfig
+from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.world import PegWorld, WorldConfig
+from lolgps_torch.task import PegTask, TaskConfig
+
+DATA = pybullet_data.getDataPath()
+ARMS = Path(__file__).resolve().parent / "data" / "arms"
+TROSSEN = ARMS / "trossen_descriptions" / "urdf"
+UR5E = ARMS / "airo_models/arms/ur5e/ur5e.urdf"
+# published descriptions, as published: name -> (URDF, degrees of freedom, end effector found)
+PUBLISHED = {
+    "airo-ur3e": (ARMS / "airo_models/arms/ur3e/ur3e.urdf", 6, "tool0"),
+    "airo-ur5e": (UR5E, 6, "tool0"),
+    "rtb-rx200": (TROSSEN / "rx200.urdf", 5, "/ee_arm_link"),
+    "rtb-vx300": (TROSSEN / "vx300.urdf", 5, "/ee_arm_link"),
+    "pybullet-xarm6-gripper": (Path(DATA, "xarm/xarm6_with_gripper.urdf"), 6, "link6"),
+    "pybullet-iiwa-vr-limits": (Path(DATA, "kuka_iiwa/model_vr_limits.urdf"), 7, "lbr_iiwa_link_7"),
+}
+# published descriptions that cannot do the task as published: what their one error line says
+REFUSED = {
+    "rtb-rx150": (TROSSEN / "rx150.urdf", "not the start 0.20 m (or half that) above the hole"),
+    "rtb-kr120": (
+        ARMS / "kuka_description/kuka_kr120/urdf/kr120r2500pro.urdf",
+        "joint 'joint_a1': <limit> effort must be positive",
+    ),
+    "rtb-kr6": (  # its visuals' materials are named "": not what refuses it
+        ARMS / "kuka_description/kuka_kr6/urdf/kr6r700sixx.urdf",
+        "link 'link_1': <inertial> missing",
+    ),
+    "airo-robotiq-2f85": (  # a gripper alone
+        ARMS / "airo_models/grippers/robotiq_2f_85/urdf/robotiq_2f_85.urdf",
+        "the peg cannot point down",
+    ),
+    "fingers-finger": (  # 3 joints: the peg points down along a curve at most
+        ARMS / "robot_properties_fingers/urdf/finger.urdf",
+        "the peg cannot point down",
+    ),
+    "fingers-trifinger": (
+        ARMS / "robot_properties_fingers/urdf/trifinger.urdf",
+        "3 arms, ending at finger_tip_link_0, finger_tip_link_120, finger_tip_link_240: "
+        "name one with --ee-link",
+    ),
+}
+PAPER_STREAM = tuple(default_training_stream(AreaConfig(), 0)[0])
+LINK = (
+    '<link name="{n}"><inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" '
+    'ixy="0" ixz="0" iyz="0"/></inertial>{extra}</link>'
+)
+JOINT = (
+    '<joint name="{n}" type="{t}"><parent link="{p}"/><child link="{c}"/><origin xyz="{xyz}"/>'
+    '<axis xyz="{axis}"/><limit lower="-2" upper="2" effort="10" velocity="2"/></joint>'
+)
+
+
+def _inspect(*args: str) -> subprocess.CompletedProcess[str]:
+    cmd = [sys.executable, "scripts/inspect_arm.py", *args, "--checks", "1"]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+
+
+def _load_quietly(path: str | Path, ee_link: str | None = None) -> tuple[ArmSpec, list[str]]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ArmWarning)
+        arm = load_arm(str(path), ee_link)
+    return arm, [str(w.message) for w in caught if issubclass(w.category, ArmWarning)]
+
+
+def _fk_gap(task: PegTask, poses: int = 5) -> float:
+    """Largest |pytorch-kinematics - PyBullet| peg point difference (m) at random poses."""
+    world, arm = task.sampler.worlds[0], task.arm
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for _ in range(poses):
+        q = rng.uniform(arm.lower, arm.upper)
+        world.reset(q)
+        fk = task.kinematics.points(torch.tensor(q)).numpy()
+        worst = max(worst, float(np.abs(fk - world.points()).max()))
+    return worst
+
+
+@pytest.mark.parametrize("name", sorted(PUBLISHED))
+def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
+    """As published, the end effector is found, the kinematics agree with PyBullet, the whole
+    default stream is reachable from the placed hole, and one short iteration runs."""
+    urdf, dof, ee_link = PUBLISHED[name]
+    config = TaskConfig(
+        urdf=str(urdf), world=WorldConfig(T=10), placement=PlacementConfig(positions=PAPER_STREAM)
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        task = PegTask(config, n_worlds=2)
+    try:
+        assert (task.arm.dof, task.arm.ee_link) == (dof, ee_link)
+        assert _fk_gap(task) < 1e-6
+        for offset in PAPER_STREAM:
+            task.check_reachable(offset)
+        learner = LocalLearner(task, PAPER_STREAM[0], LocalConfig(samples=2), seed=0)
+        samples, _, record = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
+        assert torch.isfinite(samples.cost).all() and np.isfinite(record.mean_cost)
+    finally:
+        task.close()
+
+
+@pytest.mark.parametrize("name", sorted(REFUSED))
+def test_published_description_that_cannot_do_the_task_gets_one_error_line(name: str) -> None:
+    urdf, message = REFUSED[name]
+    proc = _inspect("--urdf", str(urdf))
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and len(errors) == 1 and message in errors[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_undeclared_prefixes_are_declared_and_their_extensions_dropped() -> None:
+    """airo-models' UR5e carries ``drake:acceleration`` on its limits, undeclared."""
+    assert "xmlns:drake" not in UR5E.read_text() and "drake:acceleration" in UR5E.read_text()
+    arm, _ = _load_quietly(UR5E)
+    assert "drake" not in arm.urdf_text
+    assert len(arm.joint_names) == 6
+
+
+def _toy(tmp_path: Path, body: str, name: str = "toy.urdf") -> Path:
+    path = tmp_path / name
+    path.write_text(f'<robot name="toy">{body}</robot>')
+    return path
+
+
+def _chain(names: tuple[str, ...], extra: str = "") -> str:
+    """A vertical base with links l1.. on revolute joints ``names`` (0.3 m apart, y axes)."""
+    body = LINK.format(n="base", extra="")
+    parent = "base"
+    for i, joint in enumerate(names, 1):
+        body += LINK.format(n=f"l{i}", extra=extra if i == len(names) else "")
+        axis = "0 0 1" if i == 1 else "0 1 0"
+        xyz = "0 0 0.1" if i == 1 else "0 0 0.3"
+        body += JOINT.format(n=joint, t="revolute", p=parent, c=f"l{i}", xyz=xyz, axis=axis)
+        parent = f"l{i}"
+    return body
+
+
+def test_unnamed_visual_materials_are_named(tmp_path: Path) -> None:
+    visual = (
+        '<visual><geometry><box size="0.05 0.05 0.05"/></geometry>'
+        '<material name=""><color rgba="1 0 0 1"/></material></visual>'
+    )
+    arm, _ = _load_quietly(_toy(tmp_path, _chain(("j1", "j2", "j3"), visual)))
+    names = [m.get("name") for m in ET.fromstring(arm.urdf_text).iter("material")]
+    assert names and all(names)
+    top = f'<material name=""><color rgba="1 0 0 1"/></material>{_chain(("j1", "j2"))}'
+    nameless = _chain(("j1", "j2"), visual.replace(' name=""', ""))
+    for i, body in enumerate((top, nameless)):  # as ROS's parser, which accepts name=""
+        with pytest.raises(LolgpsError, match="<material> has no name"):
+            load_arm(str(_toy(tmp_path, body, f"bad{i}.urdf")))
+
+
+def test_meshes_pybullet_cannot_read_are_dropped_with_one_warning(tmp_path: Path) -> None:
+    """A .glb visual would make PyBullet refuse the whole URDF."""
+    (tmp_path / "part.glb").write_bytes(b"glTF")
+    visual = '<visual><geometry><mesh filename="part.glb"/></geometry></visual>'
+    arm, caught = _load_quietly(_toy(tmp_path, _chain(("j1", "j2", "j3"), visual)))
+    assert len(caught) == 1 and "'part.glb'" in caught[0] and "PyBullet cannot read" in caught[0]
+    assert ".glb" not in arm.urdf_text
+    world = PegWorld(arm, WorldConfig(T=2), (0.3, 0.0, 0.0))
+    world.close()
+
+
+def test_a_robot_finger_whose_joints_are_all_finger_joints_is_an_arm(tmp_path: Path) -> None:
+    names = ("finger_base_to_upper", "finger_upper_to_middle", "finger_middle_to_lower")
+    arm, _ = _load_quietly(_toy(tmp_path, _chain(names)))
+    assert arm.joint_names == names and arm.ee_link == "l3"
+
+
+def test_the_tool_frame_is_preferred_to_a_gripper_base_and_a_wrist_camera(tmp_path: Path) -> None:
+    """Links fixed to the wrist, equally deep: the gripper's base (a finger below it on a
+    prismatic joint, a camera fixed deeper) and a range sensor are listed first, the tool
+    frame (nothing below) is the end effector, as on dexmate's Vega arms and Baxter."""
+    body = _chain(("j1", "j2", "j3"))
+    for link in ("grasp_base", "hand_range_link", "tool0", "left_finger_link", "wrist_camera_link"):
+        body += LINK.format(n=link, extra="")
+    for name, parent, child in (
+        ("grasp_joint", "l3", "grasp_base"),
+        ("range_joint", "l3", "hand_range_link"),
+        ("tool0_joint", "l3", "tool0"),
+        ("camera_joint", "grasp_base", "wrist_camera_link"),
+    ):
+        body += f'<joint name="{name}" type="fixed"><parent link="{parent}"/><child link="{child}"/></joint>'
+    body += JOINT.format(
+        n="left_finger",
+        t="prismatic",
+        p="grasp_base",
+        c="left_finger_link",
+        xyz="0 0 0",
+        axis="1 0 0",
+    )
+    arm, _ = _load_quietly(_toy(tmp_path, body))
+    assert arm.ee_link == "tool0"
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_fuzzed_tool_extensions_load_or_give_one_error(tmp_path: Path, seed: int) -> None:
+    """A published arm with other tools' prefixed attributes and elements put at random
+    places, some visual materials' names emptied and some meshes renamed to formats PyBullet
+    cannot read: it loads with the same joints and a text PyBullet and pytorch-kinematics
+    accept."""
+    rng = random.Random(seed)
+    text = UR5E.read_text()
+    tags = [m.end() for m in re.finditer(r"<(link|joint|visual|limit)\b[^>]*?(?=/?>)", text)]
+    for at in sorted(rng.sample(tags, 6), reverse=True):
+        prefix = rng.choice(["drake", "mujoco", "isaac", "sdf"])
+        text = text[:at] + f' {prefix}:extra="{rng.random()}"' + text[at:]
+    end = text.rfind("</robot>")
+    text = (
+        text[:end]
+        + '<mujoco:compiler angle="radian"/><isaac:x a="1"><isaac:y/></isaac:x>'
+        + text[end:]
+    )
+    text = re.sub(
+        r'(<mesh filename="[^"]*)\.obj"',
+        lambda m: m.group(1) + rng.choice([".obj", ".glb", ".ply", ".OBJ"]) + '"',
+        text,
+    )
+    path = tmp_path / "arms" / "ur5e" / "ur5e.urdf"
+    path.parent.mkdir(parents=True)
+    path.write_text(text)
+    arm, _ = _load_quietly(path)
+    assert len(arm.joint_names) == 6
+    assert not re.search(r"\b(drake|mujoco|isaac|sdf):|xmlns", arm.urdf_text)
+    config = TaskConfig(urdf=str(path), world=WorldConfig(T=2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        task = PegTask(config, n_worlds=1)
+    try:
+        assert _fk_gap(task, 2) < 1e-6
+    finally:
+        task.close()
+
+
+def test_run_folder_copy_of_a_description_with_undeclared_prefixes_loads(tmp_path: Path) -> None:
+    """The run folder's copy (meshes made absolute) is parsed with the prefixes declared, and
+    loads as the original does."""
+    folder = tmp_path / "ur5e"
+    (folder / "visual").mkdir(parents=True)
+    text = UR5E.read_text()
+    mesh = re.search(r'filename="(visual/[^"]+)"', text)
+    assert mesh is not None
+    (folder / mesh.group(1)).write_text("o empty\n")
+    (folder / "ur5e.urdf").write_text(text)
+    copy = portable_urdf(str(folder / "ur5e.urdf"))
+    assert str(folder / mesh.group(1)) in copy
+    (tmp_path / "arm.urdf").write_text(copy)
+    arm, _ = _load_quietly(tmp_path / "arm.urdf")
+    assert arm.joint_names == _load_quietly(UR5E)[0].joint_names
