@@ -12,6 +12,7 @@ from the predicted against the actual improvement of the expected cost.
 A step whose samples cost more on average than those of the last accepted iteration is
 rejected: p_cur returns to the controller that drew the accepted samples and the C-step is
 taken again from the accepted fit with the step size just shrunk (a line search on epsilon).
+A step taken at the smallest multiplier is accepted: its samples re-measure the cost.
 """
 
 from __future__ import annotations
@@ -141,7 +142,10 @@ class LocalLearner:
 
         Returns the fit for the C-step: the new one, or, when the samples' mean cost exceeds
         the last accepted iteration's, that iteration's fit, with p_cur back at the
-        controller that drew its samples (the step is rejected and retried smaller)."""
+        controller that drew its samples (the step is rejected and retried smaller). A step
+        taken at the smallest multiplier is accepted whatever its cost: p_cur is then close
+        to the accepted controller, and its samples re-measure that controller's cost (a
+        lucky low draw of the accepted cost would otherwise reject every later step)."""
         dynamics = self.fitter.update(samples.x, samples.u)
         expansion = self.task.cost.expand(samples.x, samples.u, self.targets)
         fit = Fit(p_act, dynamics, to_quadratic(expansion, samples.x, samples.u))
@@ -149,11 +153,12 @@ class LocalLearner:
         cost = float(samples.cost.sum(1).mean())
         last = self.accepted
         if last is not None:
+            smallest = self.step_mult <= self.config.cstep.step_mult_min  # p_cur's step
             predicted = laplace_cost(p_act, last.fit.dynamics, last.fit.cost)
             self.step_mult = adapt_step_mult(
                 self.step_mult, last.expected, predicted, expected, self.config.cstep
             )
-            if cost > last.cost:
+            if cost > last.cost and not smallest:
                 self.p_cur = last.p_cur
                 return last.fit
         self.accepted = Accepted(fit, expected, self.p_cur, cost, samples.x)
