@@ -222,8 +222,10 @@ def test_step_mult_adaptation() -> None:
     assert adapt_step_mult(1.0, 20.0, 10.0, 10.0, config) == pytest.approx(3.0)
     # Predicted 10, actual 6: change = 10 / 8 = 1.25.
     assert adapt_step_mult(1.0, 20.0, 10.0, 14.0, config) == pytest.approx(1.25)
-    # Actual worse than before: change = 10 / 30 -> 1/3, clipped below at 0.5.
-    assert adapt_step_mult(1.0, 20.0, 10.0, 40.0, config) == pytest.approx(0.5)
+    # Actual worse than before: change = 10 / (2 * 30) = 1/6.
+    assert adapt_step_mult(1.0, 20.0, 10.0, 40.0, config) == pytest.approx(1.0 / 6.0)
+    # Far worse: the change is clipped at 0.1, the multiplier at step_mult_min.
+    assert adapt_step_mult(0.05, 20.0, 10.0, 1e4, config) == pytest.approx(0.01)
 
 
 def test_config_rejects_bad_values() -> None:

@@ -64,7 +64,7 @@ class GMMPrior:
         strength: float = 1.0,
         cov_reg: float = 1e-6,
         em_iterations: int = 100,
-        em_tolerance: float = 0.05,
+        em_tolerance: float = 1.0,
         seed: int = 0,
     ) -> None:
         if not 1 <= min_clusters <= max_clusters:

@@ -8,6 +8,11 @@ dynamics with the GMM prior, expand the cost around the samples, and take the C-
 with p_bar = p_pre (the linearised global policy) when there is one, else the previous
 p_cur (the classic trust region).  epsilon = kl_step * step_mult * T, and step_mult adapts
 from the predicted against the actual improvement of the expected cost.
+
+A step whose samples cost more on average than those of the last accepted iteration is
+rejected: p_cur returns to the controller that drew the accepted samples and the C-step is
+taken again from the accepted fit with the step size just shrunk (a line search on epsilon).
+A step taken at the smallest multiplier is accepted: its samples re-measure the cost.
 """
 
 from __future__ import annotations
@@ -80,6 +85,18 @@ class Fit(NamedTuple):
     cost: QuadraticCost
 
 
+class Accepted(NamedTuple):
+    """The last accepted iteration: its fit, the Laplace estimate of its controller's
+    expected cost under that fit, the p_cur that drew its samples, their mean total cost and
+    their states ``[N, T, dX]`` (p_pre is linearised around them)."""
+
+    fit: Fit
+    expected: float
+    p_cur: LinearGaussian
+    cost: float
+    x: Tensor
+
+
 def initial_controller(task: PegTask, config: LocalConfig) -> LinearGaussian:
     """Soft PD hold of q0 with exploration noise, scaled by each joint's effective inertia."""
     m = task.effective_inertia()
@@ -108,7 +125,7 @@ class LocalLearner:
         model = task.model.linearize if config.dynamics.prior == "model" else None
         self.fitter = DynamicsFitter(config.dynamics, model)
         self.step_mult = config.cstep.step_mult_init
-        self.previous: Fit | None = None
+        self.accepted: Accepted | None = None
         self.targets = task.targets([offset])[0]
 
     def sample(self, p_act: LinearGaussian) -> Trajectories:
@@ -121,20 +138,30 @@ class LocalLearner:
         return self.task.sample(actor, [self.offset] * self.config.samples)
 
     def fit(self, p_act: LinearGaussian, samples: Trajectories) -> Fit:
-        """Dynamics and cost expansion around the new samples; adapts the step size."""
+        """Dynamics and cost expansion around the new samples; adapts the step size.
+
+        Returns the fit for the C-step: the new one, or, when the samples' mean cost exceeds
+        the last accepted iteration's, that iteration's fit, with p_cur back at the
+        controller that drew its samples (the step is rejected and retried smaller). A step
+        taken at the smallest multiplier is accepted whatever its cost: p_cur is then close
+        to the accepted controller, and its samples re-measure that controller's cost (a
+        lucky low draw of the accepted cost would otherwise reject every later step)."""
         dynamics = self.fitter.update(samples.x, samples.u)
         expansion = self.task.cost.expand(samples.x, samples.u, self.targets)
         fit = Fit(p_act, dynamics, to_quadratic(expansion, samples.x, samples.u))
-        if self.previous is not None:
-            prev = self.previous
+        expected = float(laplace_cost(p_act, dynamics, fit.cost))
+        cost = float(samples.cost.sum(1).mean())
+        last = self.accepted
+        if last is not None:
+            smallest = self.step_mult <= self.config.cstep.step_mult_min  # p_cur's step
+            predicted = laplace_cost(p_act, last.fit.dynamics, last.fit.cost)
             self.step_mult = adapt_step_mult(
-                self.step_mult,
-                laplace_cost(prev.controller, prev.dynamics, prev.cost),
-                laplace_cost(p_act, prev.dynamics, prev.cost),
-                laplace_cost(p_act, dynamics, fit.cost),
-                self.config.cstep,
+                self.step_mult, last.expected, predicted, expected, self.config.cstep
             )
-        self.previous = fit
+            if cost > last.cost and not smallest:
+                self.p_cur = last.p_cur
+                return last.fit
+        self.accepted = Accepted(fit, expected, self.p_cur, cost, samples.x)
         return fit
 
     def improve(self, fit: Fit, p_bar: LinearGaussian) -> tuple[float, float, float]:
@@ -157,8 +184,9 @@ def iterate(
 ) -> tuple[Trajectories, LinearGaussian | None, IterationRecord]:
     """One iteration of the trajectory-centric loop, shared by the stream, batch GPS and the
     single-condition learner: sample ``p_act``, fit the dynamics, linearise the global policy
-    into p_pre around the new samples (when ``linearize`` is given) and take the C-step
-    against p_pre (``anchor_to_pre``) or against the previous p_cur.
+    into p_pre around the accepted samples (the new ones unless the step was rejected; when
+    ``linearize`` is given) and take the C-step against p_pre (``anchor_to_pre``) or against
+    the previous p_cur.
 
     :param where: (condition, iteration, alpha of p_act) for the record.
     :returns: the samples, the new p_pre (None without ``linearize``) and the iteration's record.
@@ -167,7 +195,8 @@ def iterate(
     samples = learner.sample(p_act)
     t1 = time.perf_counter()
     fit = learner.fit(p_act, samples)
-    p_pre = linearize(samples.x) if linearize is not None else None
+    assert learner.accepted is not None  # fit accepts the first iteration
+    p_pre = linearize(learner.accepted.x) if linearize is not None else None
     t2 = time.perf_counter()
     epsilon, eta, kl = learner.improve(
         fit, p_pre if p_pre is not None and anchor_to_pre else learner.p_cur

@@ -32,7 +32,7 @@ class CStepConfig:
 
     kl_step: float = 1.0
     step_mult_init: float = 1.0
-    step_mult_min: float = 0.5
+    step_mult_min: float = 0.01
     step_mult_max: float = 3.0
     step_change_min: float = 0.1
     step_change_max: float = 5.0

@@ -1,10 +1,12 @@
 """The dynamics fit against the sampling it fits, and its held-out accuracy.
 
     python scripts/bench/bench_fit.py [--urdf robots/kuka_peg.urdf] [--iterations 10]
-                                      [--tolerances 0.05 0.2 1.0]
+                                      [--tolerances 0.05 0.2 1.0] [--samples FILE ...]
 
 Runs the trajectory-centric loop at the nominal hole for ``--iterations`` iterations and keeps
-each iteration's samples. Then replays the sequence of fits (one :class:`DynamicsFitter` fed
+each iteration's samples; or, with ``--samples``, takes the samples and their sampling CPU
+time from files written by ``scripts/research/local_trace.py --save-samples`` (a stream's
+conditions, re-learnt as in the stream), each replayed on its own and the rows summed. Then replays the sequence of fits (one :class:`DynamicsFitter` fed
 the iterations in order, as the learner does) once per EM tolerance, and reports:
 
 - the fit's CPU time as a ratio to the sampling CPU time of the same iterations, split into
@@ -74,7 +76,18 @@ def main() -> None:
     parser.add_argument("--urdf", default="robots/kuka_peg.urdf")
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--tolerances", type=float, nargs="+", default=[0.05, 0.2, 1.0])
+    parser.add_argument("--samples", nargs="+", default=None, help="local_trace.py sample files")
     args = parser.parse_args()
+    torch.set_num_threads(1)
+    if args.samples is not None:
+        histories, sample_s = [], 0.0
+        for path in args.samples:
+            stored = torch.load(path, weights_only=False)
+            histories.append([Trajectories(*h) for h in stored["samples"]])
+            sample_s += stored["sample_s"]
+        where = f"{sum(map(len, histories))} iterations of {len(histories)} conditions"
+        report(histories, sample_s, args.tolerances, where)
+        return
     task = PegTask(TaskConfig(urdf=args.urdf), n_worlds=5)
     learner = LocalLearner(task, (0.0, 0.0), LocalConfig(), seed=0)
     history = []
@@ -86,13 +99,29 @@ def main() -> None:
         learner.sample(learner.p_cur)
     sample_s = (time.process_time() - t0) / 3 * len(history)
     task.close()
+    report([history], sample_s, args.tolerances, f"{len(history)} iterations at the nominal hole")
+
+
+def report(histories: list[list[Trajectories]], sample_s: float, tolerances: list[float],
+           where: str) -> None:  # fmt: skip
+    """Print one row per EM tolerance: the fits replayed over every history, summed."""
     default = DynamicsConfig()
-    reference = replay_fits(default, history)
-    print(f"{len(history)} iterations at the nominal hole; sampling {sample_s:.2f} s CPU")
+
+    def replay(config: DynamicsConfig) -> dict[str, float]:
+        rows = [replay_fits(config, history) for history in histories]
+        total = {k: sum(r[k] for r in rows) for k in ("em_s", "evaluate_s", "regression_s")}
+        return {
+            **total,
+            "em_iterations": statistics.fmean(r["em_iterations"] for r in rows),
+            "error": statistics.fmean(r["error"] for r in rows),
+        }
+
+    reference = replay(default)
+    print(f"{where}; sampling {sample_s:.2f} s CPU")
     header = "em_tolerance  fit/sample  em/sample  eval/sample  regr/sample  EM its  error/default"
     print(header)
-    for tolerance in args.tolerances:
-        row = replay_fits(replace(default, em_tolerance=tolerance), history)
+    for tolerance in tolerances:
+        row = replay(replace(default, em_tolerance=tolerance))
         total = row["em_s"] + row["evaluate_s"] + row["regression_s"]
         print(
             f"{tolerance:12.3g}  {total / sample_s:10.3f}  {row['em_s'] / sample_s:9.3f}  "
