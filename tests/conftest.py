@@ -18,10 +18,12 @@ os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported; inherited by su
 
 import fcntl
 import json
+import runpy
 import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 
@@ -92,3 +94,35 @@ def _run_ci_stream(tmp: Path) -> None:
 def ci_stream(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One uninterrupted run of the CI-sized stream for the whole suite: ``<tmp>/run``."""
     return shared_dir(tmp_path_factory, "ci_stream", _run_ci_stream)
+
+
+class ScriptRun(NamedTuple):
+    """How a script ended: its exit status and what it wrote to stdout and stderr."""
+
+    code: int
+    out: str
+    err: str
+
+
+@pytest.fixture
+def run_script(capfd: pytest.CaptureFixture[str]) -> Callable[..., ScriptRun]:
+    """``run_script(path, *args)`` runs ``python path ARGS`` (``path`` relative to the
+    repository) in this process, where the imports a new process would spend seconds on are
+    already done, and reports what the file descriptors 1 and 2 received."""
+
+    def run(path: str, *args: str) -> ScriptRun:
+        script = str(ROOT / path)
+        capfd.readouterr()
+        argv = sys.argv
+        sys.argv = [script, *args]
+        try:
+            runpy.run_path(script, run_name="__main__")
+            code = 0
+        except SystemExit as exit_:
+            code = exit_.code if isinstance(exit_.code, int) else int(exit_.code is not None)
+        finally:
+            sys.argv = argv
+        out, err = capfd.readouterr()
+        return ScriptRun(code, out, err)
+
+    return run
