@@ -17,11 +17,13 @@ import os
 os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported; inherited by subprocesses
 
 import fcntl
+import importlib
 import json
+import multiprocessing
 import runpy
-import subprocess
 import sys
 from collections.abc import Callable
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import NamedTuple
 
@@ -34,7 +36,7 @@ SMALL = [
     "--success-phases",
     "1",
     "--distill-steps",
-    "200",
+    "100",
     "--repairs",
     "0",
 ]
@@ -83,11 +85,45 @@ def ci_stream_command(tmp: Path, out: Path) -> list[str]:
             "--out", str(out)]  # fmt: skip
 
 
-def _run_ci_stream(tmp: Path) -> None:
-    proc = subprocess.run(
-        ci_stream_command(tmp, tmp / "run"), capture_output=True, text=True, timeout=900
+def _script_main(script: str, args: list[str], log: str) -> None:
+    """``python SCRIPT ARGS`` with both output streams to the file ``log``."""
+    stream = open(log, "a")  # noqa: SIM115 (this process ends with the script)
+    os.dup2(stream.fileno(), 1)
+    os.dup2(stream.fileno(), 2)
+    sys.stdout = sys.stderr = stream
+    sys.argv = [script, *args]
+    runpy.run_path(script, run_name="__main__")
+
+
+def start_script(command: list[str], log: Path) -> BaseProcess:
+    """``command`` (``[python, script, *args]``) started as a fork of this process, where the
+    imports a new interpreter would spend seconds on are done; its output goes to ``log``, its
+    ``exitcode`` is the script's exit status once it ends."""
+    # torch.optim imports torch._dynamo when it makes its first optimizer, a second's work:
+    # done once here rather than in every fork
+    importlib.import_module("torch._dynamo")
+    process = multiprocessing.get_context("fork").Process(
+        target=_script_main, args=(command[1], command[2:], str(log))
     )
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    process.start()
+    return process
+
+
+def finish_script(process: BaseProcess, log: Path, timeout: float = 900) -> int:
+    """Wait for a script from :func:`start_script`: its exit status, a failure with the end of
+    ``log`` if it does not end within ``timeout`` seconds."""
+    process.join(timeout)
+    if process.exitcode is None:
+        process.kill()
+        process.join()
+        pytest.fail(f"{process.name} did not end in {timeout} s: {log.read_text()[-2000:]}")
+    return process.exitcode
+
+
+def _run_ci_stream(tmp: Path) -> None:
+    log = tmp / "run.log"
+    code = finish_script(start_script(ci_stream_command(tmp, tmp / "run"), log), log)
+    assert code == 0, log.read_text()[-2000:]
 
 
 @pytest.fixture(scope="session")
