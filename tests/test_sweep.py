@@ -8,12 +8,13 @@ import io
 import json
 import math
 import statistics
-import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import ScriptRun
 
 from lolgps_torch import sweep
 from lolgps_torch.errors import LolgpsError
@@ -169,11 +170,12 @@ def test_without_ray_the_error_names_the_install_command(
         sweep.main(["--out", str(tmp_path / "out")])
 
 
-def test_script_prints_one_error_line_and_exits_2(tmp_path: Path) -> None:
-    cmd = [sys.executable, str(ROOT / "scripts" / "sweep.py"), "--seeds", "x"]
-    proc = subprocess.run(cmd + ["--out", str(tmp_path / "o")], capture_output=True, text=True)
-    assert proc.returncode == 2
-    assert proc.stderr.startswith("error: --seeds 'x'") and proc.stderr.count("\n") == 1
+def test_script_prints_one_error_line_and_exits_2(
+    tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    result = run_script("scripts/sweep.py", "--seeds", "x", "--out", str(tmp_path / "o"))
+    assert result.code == 2
+    assert result.err.startswith("error: --seeds 'x'") and result.err.count("\n") == 1
 
 
 def test_progress_counts_cells_and_estimates_the_rest() -> None:
