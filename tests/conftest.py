@@ -1,13 +1,14 @@
 """Fixtures shared across test modules, and how the suite runs in parallel.
 
-The suite runs on pytest-xdist workers (``-n auto --dist loadgroup`` in pyproject.toml), each
-test process with one torch thread: the workers are the parallelism, and a second intra-op
-thread per process only spins against them (on a busy 2-core machine a C-step then takes
-several times as long). A test that uses one of the expensive shared fixtures in
-``SHARED_FIXTURES`` is put in that fixture's ``xdist_group``, so all its users run on the
-worker that built it; a shared fixture is also built once per session under a file lock
-(``shared_dir``), whichever worker asks first, so it stays built once when its users are
-split across workers.
+The suite runs on pytest-xdist workers (``-n auto`` in pyproject.toml), each test process with
+one torch thread: the workers are the parallelism, and a second intra-op thread per process
+only spins against them (on a busy 2-core machine a C-step then takes several times as long).
+The modules whose tests share an expensive fixture (``GROUPS``) each run on one worker, so the
+fixture is built once; a shared fixture is also built once per session under a file lock
+(``shared_dir``), whichever worker asks first. (xdist's own ``--dist loadgroup`` does not group
+under pytest 9, whose node ids xdist 3.8 cannot suffix: the grouping is done here, by
+:func:`pytest_xdist_make_scheduler`.) The groups start first, then the longest tests
+(``LONGEST``), so that the short tests fill both workers' ends.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import sys
 from collections.abc import Callable
 from multiprocessing.process import BaseProcess
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import pytest
 
@@ -41,20 +42,18 @@ SMALL = [
     "0",
 ]
 CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
-# fixture name -> xdist group of the tests that use it
-SHARED_FIXTURES = {"ci_stream": "ci_stream", "local_ray": "ray"}
-
-
-# the longest tests outside the groups, longest first (CPU seconds when measured: 25, 12, 12,
-# 8, 7, 7, 7, 5 and less): started before the short ones, which then fill both workers' ends
+# module -> the worker group its tests run in: those sharing the CI stream, and those on Ray
+GROUPS = {"test_kill_resume.py": "ci_stream", "test_stream.py": "ci_stream", "test_ray.py": "ray"}
+# the longest tests outside the groups, longest first (CPU seconds when measured: 24, 13, 10,
+# 9, 8, 7, 7, 5 and less)
 LONGEST = (
     "test_learning.py::test_xarm_policy_keeps_both_positions_of_a_small_stream",
     "test_transfer.py::test_a_condition_the_policy_already_does_costs_fewer_rollouts",
     "test_urdf_fuzz.py::test_mutations_are_refused_or_survive_a_rollout",
     "test_learning.py::test_panda_learns_the_nominal_hole",
+    "test_learning.py::test_kuka_learns_the_nominal_hole",
     "test_arms.py::test_published_arm_loads_places_the_stream_and_iterates[rtb-px150]",
     "test_wheel.py::test_the_installed_wheel_makes_and_resets_the_env",
-    "test_learning.py::test_kuka_learns_the_nominal_hole",
     "test_arms.py::test_published_arm_that_cannot_do_the_task_gets_one_error_line[rtb-px100]",
     "test_sb3.py::test_sac_smoke_run_writes_result_and_figure",
     "test_evaluation.py::test_evaluation_is_identical_for_one_and_two_workers",
@@ -64,27 +63,34 @@ LONGEST = (
 )
 
 
+def _group(nodeid: str) -> str | None:
+    return GROUPS.get(nodeid.split("::")[0].rsplit("/", 1)[-1])
+
+
 def _rank(item: pytest.Item) -> int:
-    """Where ``item`` starts: its shared fixture's group first, then the longest tests in
-    their order, then the rest."""
-    if any(f in getattr(item, "fixturenames", ()) for f in SHARED_FIXTURES):
+    """Where ``item`` starts: the groups first, then the longest tests in order, the rest."""
+    if _group(item.nodeid):
         return 0
-    name = item.nodeid.split("/")[-1]
+    name = item.nodeid.rsplit("/", 1)[-1]
     return next(
         (1 + i for i, long in enumerate(LONGEST) if name.startswith(long)), len(LONGEST) + 1
     )
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups off the marks
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Group the users of each shared fixture; order the groups (the longest chains of work)
-    and then the longest tests first, so that the short tests keep both workers busy until
-    the end. (xdist hands out the groups, largest first, before the single tests.)"""
-    for item in items:
-        groups = [g for f, g in SHARED_FIXTURES.items() if f in getattr(item, "fixturenames", ())]
-        if groups:
-            item.add_marker(pytest.mark.xdist_group(groups[0]))
     items.sort(key=_rank)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """xdist's scope scheduling with a group per entry of ``GROUPS`` and a scope per other
+    test; the scopes go out largest first (the groups), then in collection order."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupScheduling(LoadScopeScheduling):  # type: ignore[misc]
+        def _split_scope(self, nodeid: str) -> str:
+            return _group(nodeid) or nodeid
+
+    return GroupScheduling(config, log)
 
 
 def shared_dir(
