@@ -1,13 +1,14 @@
 """Fixtures shared across test modules, and how the suite runs in parallel.
 
-The suite runs on pytest-xdist workers (``-n auto --dist loadgroup`` in pyproject.toml), each
-test process with one torch thread: the workers are the parallelism, and a second intra-op
-thread per process only spins against them (on a busy 2-core machine a C-step then takes
-several times as long). A test that uses one of the expensive shared fixtures in
-``SHARED_FIXTURES`` is put in that fixture's ``xdist_group``, so all its users run on the
-worker that built it; a shared fixture is also built once per session under a file lock
-(``shared_dir``), whichever worker asks first, so it stays built once when its users are
-split across workers.
+The suite runs on pytest-xdist workers (``-n auto`` in pyproject.toml), each test process with
+one torch thread: the workers are the parallelism, and a second intra-op thread per process
+only spins against them (on a busy 2-core machine a C-step then takes several times as long).
+The modules whose tests share an expensive fixture (``GROUPS``) each run on one worker, so the
+fixture is built once; a shared fixture is also built once per session under a file lock
+(``shared_dir``), whichever worker asks first. (xdist's own ``--dist loadgroup`` does not group
+under pytest 9, whose node ids xdist 3.8 cannot suffix: the grouping is done here, by
+:func:`pytest_xdist_make_scheduler`.) The groups start first, then the longest tests
+(``LONGEST``), so that the short tests fill both workers' ends.
 """
 
 from __future__ import annotations
@@ -18,11 +19,15 @@ os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported; inherited by su
 os.environ["LOLGPS_WORKERS"] = "1"  # scripts roll out in their own process, as tests do
 
 import fcntl
+import importlib
 import json
-import subprocess
+import multiprocessing
+import runpy
 import sys
 from collections.abc import Callable
+from multiprocessing.process import BaseProcess
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import pytest
 
@@ -33,25 +38,60 @@ SMALL = [
     "--success-phases",
     "1",
     "--distill-steps",
-    "200",
+    "100",
     "--repairs",
     "0",
 ]
 CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
-# fixture name -> xdist group of the tests that use it
-SHARED_FIXTURES = {"ci_stream": "ci_stream", "local_ray": "ray"}
+# module -> the worker group its tests run in: those sharing the CI stream, and those on Ray
+GROUPS = {"test_kill_resume.py": "ci_stream", "test_stream.py": "ci_stream", "test_ray.py": "ray"}
+# the longest tests outside the groups, longest first (CPU seconds when measured: 24, 13, 10,
+# 9, 8, 7, 7, 5 and less)
+LONGEST = (
+    "test_learning.py::test_xarm_policy_keeps_both_positions_of_a_small_stream",
+    "test_transfer.py::test_a_condition_the_policy_already_does_costs_fewer_rollouts",
+    "test_urdf_fuzz.py::test_mutations_are_refused_or_survive_a_rollout",
+    "test_learning.py::test_panda_learns_the_nominal_hole",
+    "test_learning.py::test_kuka_learns_the_nominal_hole",
+    "test_arms.py::test_published_arm_loads_places_the_stream_and_iterates[rtb-px150]",
+    "test_wheel.py::test_the_installed_wheel_makes_and_resets_the_env",
+    "test_arms.py::test_published_arm_that_cannot_do_the_task_gets_one_error_line[rtb-px100]",
+    "test_sb3.py::test_sac_smoke_run_writes_result_and_figure",
+    "test_evaluation.py::test_evaluation_is_identical_for_one_and_two_workers",
+    "test_arms.py::test_inspect_arm_reports_the_kuka",
+    "test_policy.py::test_distill_fits_a_nonlinear_target",
+    "test_arms.py::test_published_arm_loads_places_the_stream_and_iterates",
+)
+
+
+def _group(nodeid: str) -> str | None:
+    return GROUPS.get(nodeid.split("::")[0].rsplit("/", 1)[-1])
+
+
+def _rank(item: pytest.Item) -> int:
+    """Where ``item`` starts: the groups first, then the longest tests in order, the rest."""
+    if _group(item.nodeid):
+        return 0
+    name = item.nodeid.rsplit("/", 1)[-1]
+    return next(
+        (1 + i for i, long in enumerate(LONGEST) if name.startswith(long)), len(LONGEST) + 1
+    )
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Group the users of each shared fixture, and run the groups first: they are the longest
-    chains of work, so starting them early keeps the other workers busy until the end."""
-    grouped = []
-    for item in items:
-        groups = [g for f, g in SHARED_FIXTURES.items() if f in getattr(item, "fixturenames", ())]
-        if groups:
-            item.add_marker(pytest.mark.xdist_group(groups[0]))
-            grouped.append(item)
-    items[:] = grouped + [item for item in items if item not in grouped]
+    items.sort(key=_rank)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """xdist's scope scheduling with a group per entry of ``GROUPS`` and a scope per other
+    test; the scopes go out largest first (the groups), then in collection order."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupScheduling(LoadScopeScheduling):  # type: ignore[misc]
+        def _split_scope(self, nodeid: str) -> str:
+            return _group(nodeid) or nodeid
+
+    return GroupScheduling(config, log)
 
 
 def shared_dir(
@@ -82,14 +122,80 @@ def ci_stream_command(tmp: Path, out: Path) -> list[str]:
             "--out", str(out)]  # fmt: skip
 
 
-def _run_ci_stream(tmp: Path) -> None:
-    proc = subprocess.run(
-        ci_stream_command(tmp, tmp / "run"), capture_output=True, text=True, timeout=900
+def _script_main(script: str, args: list[str], log: str) -> None:
+    """``python SCRIPT ARGS`` with both output streams to the file ``log``."""
+    stream = open(log, "a")  # noqa: SIM115 (this process ends with the script)
+    os.dup2(stream.fileno(), 1)
+    os.dup2(stream.fileno(), 2)
+    sys.stdout = sys.stderr = stream
+    sys.argv = [script, *args]
+    runpy.run_path(script, run_name="__main__")
+
+
+def start_script(command: list[str], log: Path) -> BaseProcess:
+    """``command`` (``[python, script, *args]``) started as a fork of this process, where the
+    imports a new interpreter would spend seconds on are done; its output goes to ``log``, its
+    ``exitcode`` is the script's exit status once it ends."""
+    # torch.optim imports torch._dynamo when it makes its first optimizer, a second's work:
+    # done once here rather than in every fork
+    importlib.import_module("torch._dynamo")
+    process = multiprocessing.get_context("fork").Process(
+        target=_script_main, args=(command[1], command[2:], str(log))
     )
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    process.start()
+    return process
+
+
+def finish_script(process: BaseProcess, log: Path, timeout: float = 900) -> int:
+    """Wait for a script from :func:`start_script`: its exit status, a failure with the end of
+    ``log`` if it does not end within ``timeout`` seconds."""
+    process.join(timeout)
+    if process.exitcode is None:
+        process.kill()
+        process.join()
+        pytest.fail(f"{process.name} did not end in {timeout} s: {log.read_text()[-2000:]}")
+    return process.exitcode
+
+
+def _run_ci_stream(tmp: Path) -> None:
+    log = tmp / "run.log"
+    code = finish_script(start_script(ci_stream_command(tmp, tmp / "run"), log), log)
+    assert code == 0, log.read_text()[-2000:]
 
 
 @pytest.fixture(scope="session")
 def ci_stream(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One uninterrupted run of the CI-sized stream for the whole suite: ``<tmp>/run``."""
     return shared_dir(tmp_path_factory, "ci_stream", _run_ci_stream)
+
+
+class ScriptRun(NamedTuple):
+    """How a script ended: its exit status and what it wrote to stdout and stderr."""
+
+    code: int
+    out: str
+    err: str
+
+
+@pytest.fixture
+def run_script(capfd: pytest.CaptureFixture[str]) -> Callable[..., ScriptRun]:
+    """``run_script(path, *args)`` runs ``python path ARGS`` (``path`` relative to the
+    repository) in this process, where the imports a new process would spend seconds on are
+    already done, and reports what the file descriptors 1 and 2 received."""
+
+    def run(path: str, *args: str) -> ScriptRun:
+        script = str(ROOT / path)
+        capfd.readouterr()
+        argv = sys.argv
+        sys.argv = [script, *args]
+        try:
+            runpy.run_path(script, run_name="__main__")
+            code = 0
+        except SystemExit as exit_:
+            code = exit_.code if isinstance(exit_.code, int) else int(exit_.code is not None)
+        finally:
+            sys.argv = argv
+        out, err = capfd.readouterr()
+        return ScriptRun(code, out, err)
+
+    return run

@@ -11,19 +11,21 @@ import subprocess
 import sys
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pybullet_data
 import pytest
 import torch
+from conftest import ScriptRun
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.robot.arm import PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
-from lolgps_torch.robot.placement import PlacementConfig
+from lolgps_torch.robot.placement import PlacementConfig, solve_ik_batch
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
@@ -126,12 +128,15 @@ def test_panda_description() -> None:
     assert arm.effort[0] == 87.0
 
 
+INSPECT = "scripts/inspect_arm.py"
+ScriptRunner = Callable[..., ScriptRun]
+
+
 def _inspect(*args: str) -> subprocess.CompletedProcess[str]:
+    """inspect_arm.py in a process of its own, as one runs it (the other tests run it in the
+    test's process: ``run_script``)."""
     return subprocess.run(
-        [sys.executable, "scripts/inspect_arm.py", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
+        [sys.executable, INSPECT, *args], capture_output=True, text=True, timeout=300
     )
 
 
@@ -140,6 +145,19 @@ def test_inspect_arm_reports_the_kuka() -> None:
     assert proc.returncode == 0, proc.stderr
     assert "iiwa_joint_7" in proc.stdout and "peg_tip" in proc.stdout
     assert "OK" in proc.stdout.splitlines()[-1]
+
+
+def test_an_arm_pybullet_would_crash_on_is_one_error_line_from_the_script(tmp_path: Path) -> None:
+    """PyBullet's URDF importer segfaults on a joint name used twice: the loader refuses it
+    first, and the script exits with status 2 and one line."""
+    text = Path("robots/kuka_peg.urdf").read_text()
+    urdf = _write(
+        tmp_path, "twice.urdf", text.replace('name="iiwa_joint_3"', 'name="iiwa_joint_2"')
+    )
+    proc = _inspect("--urdf", urdf)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: ") and "joint name 'iiwa_joint_2' is used twice" in lines[0]
 
 
 @pytest.mark.parametrize(
@@ -160,31 +178,23 @@ def test_inspect_arm_reports_the_kuka() -> None:
             "entities",
         ),
         (lambda tmp: _urdf(tmp, "revolute", 0.02), "too short"),
-        (  # PyBullet's URDF importer segfaults on this one
-            lambda tmp: _write(
-                tmp,
-                "twice.urdf",
-                Path("robots/kuka_peg.urdf")
-                .read_text()
-                .replace('name="iiwa_joint_3"', 'name="iiwa_joint_2"'),
-            ),
-            "joint name 'iiwa_joint_2' is used twice",
-        ),
     ],
 )
-def test_bad_arms_give_one_error_line(tmp_path: Path, make: object, message: str) -> None:
+def test_bad_arms_give_one_error_line(
+    tmp_path: Path, make: object, message: str, run_script: ScriptRunner
+) -> None:
     assert callable(make)
-    proc = _inspect("--urdf", make(tmp_path))
-    assert proc.returncode == 2
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], proc.stderr
+    result = run_script(INSPECT, "--urdf", make(tmp_path))
+    assert result.code == 2
+    lines = [line for line in result.err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], result.err
 
 
-def test_ee_link_not_downstream_of_an_actuated_joint(tmp_path: Path) -> None:
-    proc = _inspect("--urdf", "robots/kuka_peg.urdf", "--ee-link", "iiwa_link_0")
-    assert proc.returncode == 2 and "not downstream of any actuated joint" in proc.stderr
-    proc = _inspect("--urdf", "robots/kuka_peg.urdf", "--ee-link", "nope")
-    assert proc.returncode == 2 and "unknown end-effector link" in proc.stderr
+def test_ee_link_not_downstream_of_an_actuated_joint(run_script: ScriptRunner) -> None:
+    result = run_script(INSPECT, "--urdf", "robots/kuka_peg.urdf", "--ee-link", "iiwa_link_0")
+    assert result.code == 2 and "not downstream of any actuated joint" in result.err
+    result = run_script(INSPECT, "--urdf", "robots/kuka_peg.urdf", "--ee-link", "nope")
+    assert result.code == 2 and "unknown end-effector link" in result.err
 
 
 def _write(tmp: Path, name: str, text: str) -> str:
@@ -220,8 +230,10 @@ def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
     try:
         assert task.arm.dof == dof
         assert _fk_gap(task) < 1e-6
-        for offset in PAPER_STREAM:
-            task.check_reachable(offset)
+        # PegTask.check_reachable's IK at every position at once (test_world checks the method)
+        targets = task.targets(list(PAPER_STREAM))
+        _, error = solve_ik_batch(task.kinematics, task.arm, targets, margin=0.0)
+        assert float(error.max()) <= task.config.placement.ik_tolerance
         learner = LocalLearner(task, PAPER_STREAM[0], LocalConfig(samples=2), seed=0)
         samples, _, record = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
         assert torch.isfinite(samples.cost).all() and np.isfinite(record.mean_cost)
@@ -231,23 +243,22 @@ def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
 
 @pytest.mark.parametrize("name", sorted(REFUSED))
 def test_published_arm_that_cannot_do_the_task_gets_one_error_line(
-    name: str, tmp_path: Path
+    name: str, tmp_path: Path, run_script: ScriptRunner
 ) -> None:
     """The default stream on it stops before any work with one line naming what to change."""
     urdf, message = REFUSED[name]
-    cmd = [sys.executable, "scripts/run_stream.py", "--urdf", str(urdf), "--out", str(tmp_path)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    assert proc.returncode == 2 and len(errors) == 1 and message in errors[0], proc.stderr
+    result = run_script("scripts/run_stream.py", "--urdf", str(urdf), "--out", str(tmp_path))
+    errors = [line for line in result.err.splitlines() if line.startswith("error:")]
+    assert result.code == 2 and len(errors) == 1 and message in errors[0], result.err
     assert not list(tmp_path.iterdir())
 
 
-def test_missing_meshes_are_one_warning_line_and_the_arm_loads() -> None:
-    proc = _inspect("--urdf", CORPUS["rtb-vx300s"][0], "--checks", "1")
-    assert proc.returncode == 0, proc.stderr
-    warned = [line for line in proc.stderr.splitlines() if line.startswith("warning:")]
+def test_missing_meshes_are_one_warning_line_and_the_arm_loads(run_script: ScriptRunner) -> None:
+    result = run_script(INSPECT, "--urdf", CORPUS["rtb-vx300s"][0], "--checks", "1")
+    assert result.code == 0, result.err
+    warned = [line for line in result.err.splitlines() if line.startswith("warning:")]
     assert len(warned) == 1 and "package://trossen_descriptions/meshes/" in warned[0]
-    assert "OK" in proc.stdout.splitlines()[-1]
+    assert "OK" in result.out.splitlines()[-1]
 
 
 def _package_with_mesh(root: Path, package: str, manifest: bool) -> Path:
@@ -293,14 +304,16 @@ def test_package_uri_is_found_on_the_package_path(
     assert f'filename="{folder / "meshes" / "base.obj"}"' in arm.urdf_text
 
 
-def test_package_path_flag_reaches_the_loader(tmp_path: Path) -> None:
+def test_package_path_flag_reaches_the_loader(tmp_path: Path, run_script: ScriptRunner) -> None:
     folder = _package_with_mesh(tmp_path / "src", "my_arm_description", True)
-    away = tmp_path / "arm.urdf"
+    away = str(tmp_path / "arm.urdf")
     shutil.copy(folder / "urdf" / "arm.urdf", away)
-    proc = _inspect("--urdf", str(away), "--checks", "1", "--package-path", str(tmp_path / "src"))
-    assert proc.returncode == 0 and "warning:" not in proc.stderr, proc.stderr
-    proc = _inspect("--urdf", str(away), "--package-path", str(tmp_path / "nowhere"))
-    assert proc.returncode == 2 and "--package-path" in proc.stderr.splitlines()[-1]
+    result = run_script(
+        INSPECT, "--urdf", away, "--checks", "1", "--package-path", str(tmp_path / "src")
+    )
+    assert result.code == 0 and "warning:" not in result.err, result.err
+    result = run_script(INSPECT, "--urdf", away, "--package-path", str(tmp_path / "nowhere"))
+    assert result.code == 2 and "--package-path" in result.err.splitlines()[-1]
 
 
 def _kuka_variant(tmp_path: Path, old: str, new: str) -> str:

@@ -299,19 +299,6 @@ def test_evaluation_is_identical_for_one_and_two_workers(
     assert "area 1" in format_table(one)
 
 
-def test_evaluation_on_ray_equals_the_process_pool(tmp_path: Path) -> None:
-    """``ray="local"``: a local Ray instance of two CPUs, its actors running the jobs, is shut
-    down at the end and gives the process pool's results."""
-    ray = pytest.importorskip("ray")
-    run = tmp_path / "run"
-    fabricate_run(run)
-    areas = AreaConfig(n_areas=1, positions_per_area=3)
-    pool = evaluate_run(run, workers=1, areas=areas, batch_size=2)
-    on_ray = evaluate_run(run, workers=2, areas=areas, batch_size=2, ray="local")
-    assert on_ray["stages"] == pool["stages"]
-    assert not ray.is_initialized()
-
-
 def test_a_copied_run_folder_evaluates_alike_from_elsewhere(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -8,11 +8,8 @@ from __future__ import annotations
 
 import json
 import os
-import runpy
 import shutil
 import signal
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -22,12 +19,11 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from conftest import ci_stream_command
+from conftest import ScriptRun, ci_stream_command, finish_script, start_script
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
 
-ROOT = Path(__file__).resolve().parents[1]
 Moment = Callable[[Path], bool]
 _command = ci_stream_command
 
@@ -60,19 +56,19 @@ def reference(ci_stream: Path) -> Path:
 def _kill_at(command: list[str], out: Path, moment: Moment, poll: float) -> None:
     """Start the stream and SIGKILL it as soon as ``moment(out)`` holds, polled every
     ``poll`` seconds; fail if the run ends first."""
-    proc = subprocess.Popen(
-        command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=out.parent
-    )
+    log = out.parent / "stream.log"
+    process = start_script(command, log)
     deadline = time.monotonic() + 900
     while not moment(out):
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            _, stderr = proc.communicate()
-            pytest.fail(f"the run ended before the moment to kill it: {stderr[-2000:]}")
+        if not process.is_alive() or time.monotonic() > deadline:
+            process.kill()
+            process.join()
+            pytest.fail(f"the run ended before the moment to kill it: {log.read_text()[-2000:]}")
         time.sleep(poll)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.communicate()
-    assert proc.returncode == -signal.SIGKILL
+    assert process.pid is not None
+    os.kill(process.pid, signal.SIGKILL)
+    process.join()
+    assert process.exitcode == -signal.SIGKILL
 
 
 def _iteration_logged(condition: int, iteration: int) -> Moment:
@@ -123,10 +119,9 @@ def test_killed_three_times_the_resumed_run_ends_as_the_uninterrupted_one(
     assert ReplayBuffer(replay).conditions() == [0]
     assert _group_bytes(replay, "condition_000") == first
 
-    resumed = subprocess.run(
-        [*command, "--resume"], capture_output=True, text=True, timeout=900, cwd=tmp_path
-    )
-    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    log = tmp_path / "stream.log"
+    code = finish_script(start_script([*command, "--resume"], log), log)
+    assert code == 0, log.read_text()[-2000:]
     assert not (out / "replay.h5.partial").exists()
     summary = json.loads((out / "summary.json").read_text())
     assert summary == json.loads((reference / "summary.json").read_text())
@@ -141,23 +136,6 @@ def test_killed_three_times_the_resumed_run_ends_as_the_uninterrupted_one(
 
 
 # -- damaged files ---------------------------------------------------------------------------
-
-
-def _main(script: str, args: list[str], capfd: pytest.CaptureFixture[str]) -> tuple[int, str]:
-    """Run ``scripts/<script>`` as ``python scripts/<script> ARGS`` does, in this process (a
-    process per case would cost seconds of imports each): its exit status and what it wrote
-    to the stderr file descriptor."""
-    capfd.readouterr()
-    argv = sys.argv
-    sys.argv = [script, *args]
-    try:
-        runpy.run_path(str(ROOT / "scripts" / script), run_name="__main__")
-        code = 0
-    except SystemExit as exit_:
-        code = int(exit_.code or 0)
-    finally:
-        sys.argv = argv
-    return code, capfd.readouterr().err
 
 
 def _truncate(path: Path) -> None:
@@ -185,7 +163,7 @@ def test_a_truncated_file_is_one_error_naming_it(
     damaged: str,
     reference: Path,
     tmp_path: Path,
-    capfd: pytest.CaptureFixture[str],
+    run_script: Callable[..., ScriptRun],
 ) -> None:
     run = tmp_path / "run"
     shutil.copytree(reference, run)
@@ -196,11 +174,11 @@ def test_a_truncated_file_is_one_error_naming_it(
         "export_dataset.py": ["--run", str(run), "--out", str(tmp_path / "export.h5")],
     }[script]
     (tmp_path / "positions.json").write_text("[[0.0, 0.0]]")
-    code, stderr = _main(
-        script, [*args, "--workers", "1"] if script == "evaluate.py" else args, capfd
+    result = run_script(
+        f"scripts/{script}", *args, *(["--workers", "1"] if script == "evaluate.py" else [])
     )
-    assert code == 2
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), stderr
+    assert result.code == 2
+    lines = result.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.err
     assert str(run / damaged) in lines[0]
     assert not (tmp_path / "export.h5").exists() and not (run / "eval.json").exists()

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
+from typing import Any
 
 import h5py
 import pytest
@@ -207,6 +206,23 @@ def test_crash_during_append_leaves_the_file_intact(
     assert fresh.conditions() == [] and not fresh.path.exists()
 
 
+def _append_killed_at_the_fifth_dataset(path: Path, samples: ConditionSamples) -> None:
+    """Append ``samples`` as condition 1 and SIGKILL this process as the append creates its
+    fifth dataset, the file flushed first."""
+    real = h5py.Group.create_dataset
+    calls = []
+
+    def killing(self: h5py.Group, *args: Any, **kwargs: Any) -> h5py.Dataset:
+        calls.append(1)
+        if len(calls) == 5:
+            self.file.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(self, *args, **kwargs)
+
+    h5py.Group.create_dataset = killing
+    ReplayBuffer(path).append_condition(1, (0.0, 0.0), samples, iterations=1)
+
+
 def test_sigkill_during_append_leaves_the_file_intact(
     tmp_path: Path, two_conditions: tuple
 ) -> None:
@@ -215,29 +231,12 @@ def test_sigkill_during_append_leaves_the_file_intact(
     replay = ReplayBuffer(path)
     replay.append_condition(0, (0.0, 0.0), first, iterations=1)
     data = path.read_bytes()
-    torch.save(second._asdict(), tmp_path / "second.pt")
-    script = textwrap.dedent(
-        f"""
-        import os, signal, h5py, torch
-        from lolgps_torch.data import ReplayBuffer
-        from lolgps_torch.types import ConditionSamples
-        real = h5py.Group.create_dataset
-        calls = []
-        def killing(self, *args, **kwargs):
-            calls.append(1)
-            if len(calls) == 5:
-                self.file.flush()
-                os.kill(os.getpid(), signal.SIGKILL)
-            return real(self, *args, **kwargs)
-        h5py.Group.create_dataset = killing
-        second = ConditionSamples(**torch.load({str(tmp_path / "second.pt")!r}, weights_only=True))
-        ReplayBuffer({str(path)!r}).append_condition(1, (0.0, 0.0), second, iterations=1)
-        """
+    writer = multiprocessing.get_context("fork").Process(
+        target=_append_killed_at_the_fifth_dataset, args=(path, second)
     )
-    result = subprocess.run(
-        [sys.executable, "-c", script], env={**os.environ, "OMP_NUM_THREADS": "1"}
-    )
-    assert result.returncode == -signal.SIGKILL
+    writer.start()
+    writer.join(timeout=300)
+    assert writer.exitcode == -signal.SIGKILL
     assert path.read_bytes() == data
     assert replay.conditions() == [0]
     assert (tmp_path / "replay.h5.partial").exists()  # the killed writer's leftover

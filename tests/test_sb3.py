@@ -42,7 +42,7 @@ def test_sb3_checker_accepts_the_normalized_env() -> None:
 def test_sac_smoke_run_writes_result_and_figure(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """300 steps (3 episodes of T = 100, 200 gradient steps) of SAC next to a GPS run of two
+    """200 steps (2 episodes of T = 100, 100 gradient steps) of SAC next to a GPS run of two
     iterations whose second succeeded."""
     pytest.importorskip("stable_baselines3")
     gps = tmp_path / "gps"
@@ -57,11 +57,11 @@ def test_sac_smoke_run_writes_result_and_figure(
     ]
     (gps / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     out = tmp_path / "sac"
-    args = ["--steps", "300", "--gps", str(gps), "--out", str(out), "--every", "1"]
+    args = ["--steps", "200", "--gps", str(gps), "--out", str(out), "--every", "1"]
     assert run_script(args, monkeypatch) == 0
     result = json.loads((out / "result.json").read_text())
-    assert result["steps"] == 300 and result["rollouts"] == 3
-    assert [e["steps"] for e in result["episodes"]] == [100, 200, 300]
+    assert result["steps"] == 200 and result["rollouts"] == 2
+    assert [e["steps"] for e in result["episodes"]] == [100, 200]
     assert result["gps"]["rollouts"] == 10 and result["gps"]["rollouts_to_first_success"] == 10
     assert result["gps"]["seconds"] == pytest.approx(3.5)
     assert set(result["deterministic_policy"]) == {"final_distance", "success"}

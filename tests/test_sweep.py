@@ -1,6 +1,5 @@
-"""The sweep: grid parsing and input checks, the mean ± sd aggregation on hand-made run folders
-(no Ray), and CI-sized sweeps on a local two-CPU Ray instance: two cells finish, a rerun skips
-them, and a cell that fails is reported while the other finishes."""
+"""The sweep without Ray: grid parsing and input checks, and the mean ± sd aggregation on
+hand-made run folders (test_ray.py runs sweeps)."""
 
 from __future__ import annotations
 
@@ -9,13 +8,13 @@ import io
 import json
 import math
 import statistics
-import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import ScriptRun
 
 from lolgps_torch import sweep
 from lolgps_torch.errors import LolgpsError
@@ -171,11 +170,12 @@ def test_without_ray_the_error_names_the_install_command(
         sweep.main(["--out", str(tmp_path / "out")])
 
 
-def test_script_prints_one_error_line_and_exits_2(tmp_path: Path) -> None:
-    cmd = [sys.executable, str(ROOT / "scripts" / "sweep.py"), "--seeds", "x"]
-    proc = subprocess.run(cmd + ["--out", str(tmp_path / "o")], capture_output=True, text=True)
-    assert proc.returncode == 2
-    assert proc.stderr.startswith("error: --seeds 'x'") and proc.stderr.count("\n") == 1
+def test_script_prints_one_error_line_and_exits_2(
+    tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    result = run_script("scripts/sweep.py", "--seeds", "x", "--out", str(tmp_path / "o"))
+    assert result.code == 2
+    assert result.err.startswith("error: --seeds 'x'") and result.err.count("\n") == 1
 
 
 def test_progress_counts_cells_and_estimates_the_rest() -> None:
@@ -294,79 +294,3 @@ def test_summaries_are_written_as_markdown_csv_and_figure(fake_sweep: sweep.Swee
     assert [r["method"] for r in rows] == ["lolgps", "naive"]
     assert float(rows[0]["rollouts_mean"]) == 30.0 and rows[1]["train_success_sd"] == ""
     assert (out / "summary.png").stat().st_size > 0
-
-
-# -- sweeps on a local Ray instance -----------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def local_ray() -> Iterator[None]:
-    """A local Ray instance with two CPUs for this module's sweeps, shut down at the end."""
-    ray = pytest.importorskip("ray")
-    import logging
-
-    ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.ERROR)
-    try:
-        yield
-    finally:
-        ray.shutdown()
-
-
-@pytest.fixture(scope="module")
-def conditions(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One training position: the smallest stream."""
-    path = tmp_path_factory.mktemp("conditions") / "one.json"
-    path.write_text("[[0.02, 0.02]]")
-    return path
-
-
-def test_sweep_runs_two_cells_then_skips_them(
-    local_ray: None, conditions: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    argv = ["--seeds", "0-1", "--urdf", KUKA, "--conditions", str(conditions)]
-    argv += ["--out", str(tmp_path / "sweep"), "--", *TINY]
-    assert sweep.main(argv) == 0
-    out = tmp_path / "sweep"
-    names = ["lolgps-kuka_peg-paper-seed0", "lolgps-kuka_peg-paper-seed1"]
-    mtimes = [(out / n / "summary.json").stat().st_mtime_ns for n in names]
-    first = capsys.readouterr().out
-    assert (
-        "0 finished before (skipped), 0 to resume, 0 to evaluate, 2 new" in first
-        and "[2/2 done, 0 running, 0 failed" in first
-    )
-    rows = list(csv.DictReader((out / "summary.csv").open()))
-    assert len(rows) == 1 and rows[0]["seeds"] == "2"
-    assert float(rows[0]["rollouts_mean"]) == 4.0  # 2 iterations x 2 samples
-    assert "| lolgps | kuka_peg | paper | 2 |" in (out / "summary.md").read_text()
-    recorded = json.loads((out / "sweep.json").read_text())
-    assert [c["status"] for c in recorded["cells"]] == ["finished", "finished"]
-
-    assert sweep.main(argv) == 0
-    assert (
-        "2 finished before (skipped), 0 to resume, 0 to evaluate, 0 new" in capsys.readouterr().out
-    )
-    assert [(out / n / "summary.json").stat().st_mtime_ns for n in names] == mtimes
-    recorded = json.loads((out / "sweep.json").read_text())
-    assert [c["status"] for c in recorded["cells"]] == ["skipped", "skipped"]
-
-
-def test_a_failing_cell_is_retried_and_reported_while_the_other_finishes(
-    local_ray: None, conditions: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    broken = tmp_path / "broken_arm.urdf"
-    broken.write_text("<robot name='broken'>")  # exists for the grid check; run_stream rejects it
-    out = tmp_path / "sweep"
-    argv = ["--urdf", KUKA, str(broken), "--conditions", str(conditions), "--out", str(out)]
-    assert sweep.main([*argv, "--", *TINY]) == 1
-    captured = capsys.readouterr()
-    assert "lolgps-broken_arm-paper-seed0 failed (error: " in captured.out  # the first attempt
-    assert "lolgps-broken_arm-paper-seed0 FAILED: error: " in captured.out
-    assert "lolgps-broken_arm-paper-seed0: error: " in captured.err
-    assert (out / "lolgps-kuka_peg-paper-seed0" / "summary.json").is_file()
-    log = (out / "lolgps-broken_arm-paper-seed0" / sweep.LOG_FILE).read_text()
-    assert log.count("$ ") == 2  # tried twice
-    statuses = {c["name"]: c for c in json.loads((out / "sweep.json").read_text())["cells"]}
-    assert statuses["lolgps-kuka_peg-paper-seed0"]["status"] == "finished"
-    assert statuses["lolgps-broken_arm-paper-seed0"]["status"] == "failed"
-    assert statuses["lolgps-broken_arm-paper-seed0"]["error"].startswith("error: ")
-    assert "`lolgps-broken_arm-paper-seed0`: error: " in (out / "summary.md").read_text()

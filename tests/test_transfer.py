@@ -59,7 +59,14 @@ def test_a_condition_the_policy_already_does_costs_fewer_rollouts(
     policy is known to succeed: its rollout right after the S-step is the probe's): with
     transfer it is rehearsed (a probe and one iteration of the policy's own rollouts), without
     it learnt from the hold controller, from the same folder after the first condition."""
-    config = StreamConfig(transfer="policy", success_phases=2, transfer_phases=1, max_iterations=12)
+    d = StreamConfig()  # S-steps of 200 Adam steps, not 1000: enough to do the hole
+    config = StreamConfig(
+        transfer="policy",
+        success_phases=2,
+        transfer_phases=1,
+        max_iterations=12,
+        policy=replace(d.policy, steps=200),
+    )
     first = StreamLearner(kuka_task, config, RunFolder(tmp_path / "transfer"), lambda r: None)
     entry = first.learn_condition(0, (0.0, 0.0))
     assert entry.policy_success_after  # the policy does the first hole

@@ -1,20 +1,19 @@
 """Malformed URDFs: each is refused with one :class:`LolgpsError`, or it loads and survives
 building the task and a short rollout, never a traceback or a crash.
 
-200 seeded random mutations of ``robots/kuka_peg.urdf`` (a number replaced, a tag deleted or
+100 seeded random mutations of ``robots/kuka_peg.urdf`` (a number replaced, a tag deleted or
 duplicated, an attribute dropped, a name duplicated, a joint re-linked, the file truncated)
-go through the loader here; the accepted ones are built and rolled out in one subprocess
-(this file run as a script), so a simulator segfault fails the test instead of killing it.
+go through the loader here; the accepted ones are built and rolled out in one forked process,
+so a simulator segfault fails the test instead of killing it.
 """
 
 from __future__ import annotations
 
 import copy
 import json
+import multiprocessing
 import random
 import re
-import subprocess
-import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,9 +24,12 @@ import torch
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.placement import PlacementConfig, solve_ik
+from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.task import PegTask, TaskConfig
 
 KUKA = Path(__file__).resolve().parent.parent / "robots" / "kuka_peg.urdf"
-N_MUTATIONS = 200
+N_MUTATIONS = 100  # about a quarter load, each built and rolled out in 0.3-0.5 s
 # the KUKA's start pose from inverse kinematics, given so the worker skips the IK solve
 KUKA_Q0 = (-0.00347, 0.32111, 0.00470, -1.36089, -0.00149, 1.45942, -0.04466)
 BAD_NUMBERS = ("nan", "inf", "-inf", "0", "-1", "abc", "1.2.3", "")
@@ -146,21 +148,15 @@ def test_mutations_are_refused_or_survive_a_rollout(
         assert message is None or (str(m.path) in message and "\n" not in message), (m, message)
     accepted = [m for m in mutations if loader[m.path] is None]
     out = tmp_path / "outcomes.jsonl"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            __file__,
-            str(out),
-            *(str(m.path) for m in accepted),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    paths = [str(m.path) for m in accepted]
+    worker = multiprocessing.get_context("fork").Process(target=_worker, args=(str(out), paths))
+    worker.start()
+    worker.join(timeout=600)
+    worker.kill()  # if it hangs
     lines = out.read_text().splitlines() if out.exists() else []
     results = [json.loads(line) for line in lines]
     died_on = accepted[len(results)].what if len(results) < len(accepted) else None
-    assert proc.returncode == 0, (died_on, proc.stderr[-2000:])
+    assert worker.exitcode == 0, (died_on, worker.exitcode)
     assert [r["path"] for r in results] == [str(m.path) for m in accepted]
     crashes = [
         (m.what, r) for m, r in zip(accepted, results, strict=True) if r["outcome"] == "crash"
@@ -168,7 +164,8 @@ def test_mutations_are_refused_or_survive_a_rollout(
     assert not crashes
     survived = sum(r["outcome"] == "survived" for r in results)
     # both kinds must be common, or the mutations no longer probe the loader
-    assert len(mutations) - len(accepted) >= 80 and survived >= 30, (len(accepted), survived)
+    refused = len(mutations) - len(accepted)
+    assert refused >= 0.4 * N_MUTATIONS and survived >= 0.15 * N_MUTATIONS, (refused, survived)
 
 
 def _variant(tmp_path: Path, old: str, new: str) -> str:
@@ -292,11 +289,6 @@ def _hold(dof: int) -> Callable[[int, torch.Tensor, slice], torch.Tensor]:
 def _worker(out: str, paths: list[str]) -> None:
     """Build the task and run a 5-step rollout for each URDF; one JSON line per URDF to ``out``
     (not stdout, where PyBullet prints its warnings)."""
-    from lolgps_torch.robot.placement import PlacementConfig, solve_ik
-    from lolgps_torch.sim.world import WorldConfig
-    from lolgps_torch.task import PegTask, TaskConfig
-
-    torch.set_num_threads(1)
     for path in paths:
         try:
             dof = load_arm(path).dof  # a re-linked joint can shorten the chain: solve IK then
@@ -315,7 +307,3 @@ def _worker(out: str, paths: list[str]) -> None:
             outcome, detail = "crash", f"{type(exc).__name__}: {exc}"
         with open(out, "a") as fh:
             fh.write(json.dumps({"path": path, "outcome": outcome, "detail": detail}) + "\n")
-
-
-if __name__ == "__main__":
-    _worker(sys.argv[1], sys.argv[2:])

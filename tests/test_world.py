@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from lolgps_torch.cost.l12 import CostConfig, PegCost, to_quadratic
+from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import solve_ik
@@ -46,6 +47,12 @@ def test_fk_matches_pybullet(urdf: str) -> None:
     world.close()
     got = kin.points(torch.tensor(qs))
     assert torch.allclose(got, torch.tensor(np.stack(expected)), atol=1e-6, rtol=0)
+
+
+def test_an_offset_out_of_reach_is_named(task: PegTask) -> None:
+    task.check_reachable((0.02, -0.02))
+    with pytest.raises(LolgpsError, match=r"^hole offset \(\+2\.000, \+0\.000\) m is out of the"):
+        task.check_reachable((2.0, 0.0))
 
 
 def test_jacobian_matches_finite_differences(task: PegTask) -> None:
