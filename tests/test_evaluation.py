@@ -365,8 +365,8 @@ def test_script_prints_one_error_line(
 
 
 def test_scores_equal_those_of_the_task_itself() -> None:
-    """Rollouts in a worker's worlds, scored by the main process, give what PegTask.sample
-    gives for the same policy and positions."""
+    """Rollouts in a worker's worlds, scored by the main process, give what the task's own
+    lockstep worlds and scoring give for the same policy and positions."""
     policy = GaussianPolicy(26, 7)
     positions = ((0.0, 0.0), (0.01, -0.02))
     config = TaskConfig(urdf=KUKA)
@@ -374,7 +374,8 @@ def test_scores_equal_those_of_the_task_itself() -> None:
     task = PegTask(config, n_worlds=2)
     try:
         with torch.no_grad():
-            samples = task.sample(lambda t, x, rows: policy(x), list(positions))
+            lockstep = task.sampler.rollout(lambda t, x, rows: policy(x), list(positions))
+            samples = task.score(*lockstep, list(positions))
     finally:
         task.close()
     assert result.final_distance == samples.final_distance.tolist()
