@@ -127,7 +127,8 @@ def consistent_states(task: PegTask, x: Tensor, offset: tuple[float, float]) -> 
 
 
 class Distiller:
-    """The S-step with replay: owns nothing but the settings and the replay it reads.
+    """The S-step with replay: owns nothing but the settings, the replay it reads and the
+    rows it has read from it.
 
     :param augment: perturbed copies of each new D_g state.
     :param augment_scale: their size, in per-step standard deviations of D_g's states (q and
@@ -145,6 +146,7 @@ class Distiller:
     ) -> None:
         self.task, self.config, self.replay = task, config, replay
         self.augment, self.augment_scale = augment, augment_scale
+        self._rows: dict[int, DistillBatch] = {}
 
     def __call__(
         self,
@@ -162,13 +164,7 @@ class Distiller:
         :param config: the S-step's settings (default: the distiller's).
         """
         gen = torch.Generator().manual_seed(seed)
-        stored = []
-        if self.replay is not None:
-            replay = self.replay
-            stored = [
-                replay.read_condition(index, self.task.device).samples.to_batch()
-                for index in replay.conditions()
-            ]
+        stored = self._stored()
         batches = []
         for place, rows in enumerate(stored):
             batches += [rows] * (2 if place in emphasis else 1)
@@ -181,6 +177,18 @@ class Distiller:
         if batch.x.shape[0] == 0:
             return []
         return distill(policy, batch, config or self.config, gen)
+
+    def _stored(self) -> list[DistillBatch]:
+        """The replay's rows, condition by condition; each condition is read from the file
+        once (the replay only grows) and kept."""
+        if self.replay is None:
+            return []
+        conditions = self.replay.conditions()
+        for index in conditions:
+            if index not in self._rows:
+                record = self.replay.read_condition(index, self.task.device)
+                self._rows[index] = record.samples.to_batch()
+        return [self._rows[index] for index in conditions]
 
     def _augmented(self, item: Labelled, gen: torch.Generator) -> DistillBatch:
         """``augment`` copies of D_g's states, q and q-dot perturbed by ``augment_scale`` times

@@ -187,7 +187,7 @@ def distill(
 
     Steps: whitening, ``Sigma_pi`` and output scaling from the batch (:func:`set_statistics`);
     each row's constant part of the loss (:func:`_row_constants`); then ``config.steps``
-    ``torch.optim.Adam`` steps (fresh optimiser state, learning rate decayed along a cosine to
+    ``torch.optim.Adam`` steps (fused; fresh optimiser state, learning rate decayed along a cosine to
     5% of ``config.learning_rate``) on minibatches of ``config.batch_size`` rows drawn
     uniformly with replacement, from the current weights (the policy keeps what earlier
     S-steps taught it), on ``config.num_threads`` intra-op threads. Only the precision-weighted
@@ -210,10 +210,11 @@ def distill(
     set_statistics(policy, batch, config.pre_weight)
     dtype = getattr(torch, config.adam_dtype)
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
-    history = batch.x.new_empty(config.steps)
+    draws = draws.to(batch.x.device)
+    history: list[Tensor] = []
     trainee = copy.deepcopy(policy).to(dtype)
     weights = [w for w in trainee.parameters() if w.requires_grad]
-    optimiser = torch.optim.Adam(weights, lr=config.learning_rate, foreach=True)
+    optimiser = torch.optim.Adam(weights, lr=config.learning_rate, fused=True)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
         optimiser, config.steps, eta_min=0.05 * config.learning_rate
     )
@@ -221,16 +222,16 @@ def distill(
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)
             rows_all = _sgd_rows(policy, batch, dtype)
-        for step, index in enumerate(draws.to(batch.x.device)):
+        for index in draws:
             rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
             loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
             schedule.step()
-            history[step] = loss.detach() + constant.index_select(0, index).mean()
+            history.append(loss.detach())
     with torch.no_grad():
         for mine, trained in zip(policy.parameters(), trainee.parameters(), strict=True):
             mine.copy_(trained)
     policy.trained = True
-    return history.tolist()
+    return (torch.stack(history).to(constant.dtype) + constant[draws].mean(1)).tolist()
