@@ -357,13 +357,13 @@ def _teacher_sds(policy: GaussianPolicy, batch: DistillBatch) -> float:
 
 def test_gain_head_fits_a_high_gain_teacher() -> None:
     """The Panda's teachers vary by tens of their standard deviations between samples a few
-    millimetres apart. 300 Adam steps of the default S-step (gain head) fit them to about 9 sd;
-    the plain MLP (the S-step's net up to aae6f53) with the same steps stays near 16 sd."""
+    millimetres apart. 200 Adam steps of the default S-step (gain head) fit them to about 11 sd;
+    the plain MLP (the S-step's net up to aae6f53) with the same steps stays near 19 sd."""
     batch = _panda_approach()
     errors = {}
     for feedback in (True, False):
-        config = PolicyConfig(steps=300, feedback=feedback)
+        config = PolicyConfig(steps=200, feedback=feedback)
         policy = GaussianPolicy(batch.x.shape[1], batch.mean_cur.shape[1], config)
         distill(policy, batch)
         errors[feedback] = _teacher_sds(policy, batch)
-    assert errors[True] < 11.0 < 14.0 < errors[False]
+    assert errors[True] < 12.5 < 16.0 < errors[False]
