@@ -96,7 +96,7 @@ class StreamConfig:
     max_iterations: int = 25
     transfer: Transfer = "none"
     transfer_phases: int = 3
-    repairs: int = 0
+    repairs: int = 3
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
