@@ -11,7 +11,8 @@ p_pre are those the original stream's policy gave. Prints, per condition, the po
 policy reaches after its S-step, the repair rounds and the CPU seconds of the checked S-step;
 then the final policy's distances at every position and its fit on D_g in teacher standard
 deviations (``scripts/research/precision.py``'s ``fit``), so S-step settings are compared on
-the same data in a minute rather than re-running streams.
+the same data in a minute rather than re-running streams. With the run's own S-step settings
+and seed (the default seed) it repeats the run's S-steps exactly.
 """
 
 from __future__ import annotations
@@ -44,7 +45,12 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--lr", type=float, default=d.policy.learning_rate)
     parser.add_argument("--adam-dtype", choices=("float32", "float64"), default=d.policy.adam_dtype)
     parser.add_argument("--repairs", type=int, default=d.repairs, help="(%(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="stream seed of the S-steps")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="seed of the net and the S-steps (default: the run's)",
+    )
     args = parser.parse_args()
     if min(args.steps, args.batch_size) < 1 or args.repairs < 0:
         raise LolgpsError("--steps and --batch-size must be positive, --repairs >= 0")
@@ -54,7 +60,9 @@ def parse_args() -> argparse.Namespace:
 def main() -> None:
     args = parse_args()
     loaded = load_run(args.run)
-    stream = StreamConfig(**{k: loaded.info.stream[k] for k in ("augment", "augment_scale")})
+    seed = int(loaded.info.stream["seed"]) if args.seed is None else args.seed
+    kept = {k: loaded.info.stream[k] for k in ("augment", "augment_scale")}
+    stream = StreamConfig(**kept, seed=seed)
     adam_dtype: AdamDtype = args.adam_dtype
     config = replace(
         stream.policy,
@@ -63,7 +71,7 @@ def main() -> None:
         batch_size=args.batch_size,
         learning_rate=args.lr,
         adam_dtype=adam_dtype,
-        seed=args.seed,
+        seed=seed,
     )
     task = loaded.make_task()
     threshold = task.config.world.success_threshold
@@ -82,9 +90,8 @@ def main() -> None:
                     raise LolgpsError(f"condition {k} was labelled by the policy: not supported")
                 labels = Labels(record.p_cur, record.p_pre, record.iterations)
                 item = Labelled(record.offset, record.samples, labels)
-                seed = condition_seed(replace(stream, seed=args.seed), k)
                 start = time.process_time()
-                checked = sstep(policy, item, offsets[: k + 1], seed)
+                checked = sstep(policy, item, offsets[: k + 1], condition_seed(stream, k))
                 seconds = time.process_time() - start
                 total += seconds
                 reached = sum(d < threshold for d in checked.distances)
