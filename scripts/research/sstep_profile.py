@@ -5,10 +5,11 @@
 The S-step of condition ``K`` (default: the last) is rebuilt as the stream ran it: the
 replay of conditions ``0 .. K-1`` (copied into a temporary replay file), condition ``K``'s D_g
 as the new item labelled by its stored controllers, and the policy checkpointed after
-``K - 1``. It prints the rows, then the seconds (best of ``--repeats``, CPU time of this
-process) of each part: reading the replay, the new D_g's perturbed copies, the statistics and
-constant terms, the Adam loop, and one closed-loop check (the policy's noiseless rollouts at
-the ``K + 1`` positions learnt so far).
+``K - 1``, with the run's S-step settings. It prints the rows, then the seconds (best of
+``--repeats``, CPU time of this process) of each part: reading the replay, the new D_g's
+perturbed copies, the statistics and constant terms, the Adam loop (the whole call less
+those), and one closed-loop check (the policy's noiseless rollouts at the ``K + 1`` positions
+learnt so far).
 """
 
 from __future__ import annotations
@@ -98,10 +99,14 @@ def main() -> None:
         t_stats, _ = best_seconds(statistics, args.repeats)
         state = {n: v.clone() for n, v in policy.state_dict().items()}
 
-        def call() -> None:
+        def call() -> (
+            None
+        ):  # a fresh Distiller, so the call reads the replay as a stream's first does
             policy.load_state_dict(state)
             policy.trained = True
-            distiller(policy, [item], 0)
+            Distiller(task, config, stream["augment"], stream["augment_scale"], replay)(
+                policy, [item], 0
+            )
 
         t_all, _ = best_seconds(call, args.repeats)
         offsets = [r.offset for r in loaded.records[: k + 1]]
