@@ -18,6 +18,7 @@ from lolgps_torch.policy import (
     linearize_policy,
     optimal_variance,
 )
+from lolgps_torch.policy.net import AdamDtype
 from lolgps_torch.policy.sstep import _row_constants, _row_quadratics, set_statistics
 from lolgps_torch.types import DistillBatch
 
@@ -194,14 +195,26 @@ def test_distill_rejects_an_empty_batch() -> None:
         distill(GaussianPolicy(3, 2), DistillBatch(*(field[:0] for field in batch)))
 
 
-@pytest.mark.parametrize("feedback", [False, True])
-def test_distill_matches_autograd_adam_on_kl_loss(feedback: bool) -> None:
-    """The S-step against a plain loop written from the loss: autograd through
-    :func:`kl_loss`'s terms (per-row constants computed once), ``torch.optim.Adam`` and
-    ``CosineAnnealingLR`` on the same minibatches, for the plain MLP and the feedback head."""
+@pytest.mark.parametrize(
+    ("feedback", "adam_dtype", "rel"),
+    [(False, "float64", 1e-10), (True, "float64", 1e-10), (True, "float32", 1e-5)],
+)
+def test_distill_matches_autograd_adam_on_kl_loss(
+    feedback: bool, adam_dtype: AdamDtype, rel: float
+) -> None:
+    """The S-step against a plain float64 loop written from the loss on the raw rows:
+    autograd through :func:`kl_loss`'s terms (per-row constants computed once),
+    ``torch.optim.Adam`` and ``CosineAnnealingLR`` on the same minibatches, for the plain MLP
+    and the feedback head. In float64 the S-step's change of units (:func:`_sgd_rows`) changes
+    nothing beyond rounding; in float32 it agrees to float32's rounding."""
     batch = random_batch(M=300, dX=4, dU=3, seed=16)
     config = PolicyConfig(
-        hidden_sizes=(16, 16), steps=50, batch_size=32, pre_weight=0.3, feedback=feedback
+        hidden_sizes=(16, 16),
+        steps=50,
+        batch_size=32,
+        pre_weight=0.3,
+        feedback=feedback,
+        adam_dtype=adam_dtype,
     )
     policy, reference = GaussianPolicy(4, 3, config), GaussianPolicy(4, 3, config)
     history = distill(policy, batch, generator=torch.Generator().manual_seed(17))
@@ -223,8 +236,8 @@ def test_distill_matches_autograd_adam_on_kl_loss(feedback: bool) -> None:
         optimiser.step()
         schedule.step()
         expected.append(loss.item())
-    assert history == pytest.approx(expected, rel=1e-10)
-    assert torch.allclose(policy(batch.x), reference(batch.x), rtol=1e-9, atol=1e-12)
+    assert history == pytest.approx(expected, rel=rel)
+    assert torch.allclose(policy(batch.x), reference(batch.x), rtol=100 * rel, atol=100 * rel)
 
 
 def test_distill_is_the_same_in_any_torque_units() -> None:
@@ -344,13 +357,13 @@ def _teacher_sds(policy: GaussianPolicy, batch: DistillBatch) -> float:
 
 def test_gain_head_fits_a_high_gain_teacher() -> None:
     """The Panda's teachers vary by tens of their standard deviations between samples a few
-    millimetres apart. 300 Adam steps of the default S-step (gain head) fit them to about 9 sd;
-    the plain MLP (the S-step's net up to aae6f53) with the same steps stays near 16 sd."""
+    millimetres apart. 200 Adam steps of the default S-step (gain head) fit them to about 11 sd;
+    the plain MLP (the S-step's net up to aae6f53) with the same steps stays near 19 sd."""
     batch = _panda_approach()
     errors = {}
     for feedback in (True, False):
-        config = PolicyConfig(steps=300, feedback=feedback)
+        config = PolicyConfig(steps=200, feedback=feedback)
         policy = GaussianPolicy(batch.x.shape[1], batch.mean_cur.shape[1], config)
         distill(policy, batch)
         errors[feedback] = _teacher_sds(policy, batch)
-    assert errors[True] < 11.0 < 14.0 < errors[False]
+    assert errors[True] < 12.5 < 16.0 < errors[False]

@@ -8,7 +8,6 @@ import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
 
 import h5py
 import numpy as np
@@ -17,13 +16,10 @@ import pytest
 import torch
 from conftest import ci_stream_command
 
-import lolgps_torch.lolgps.stream as stream_module
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
-from lolgps_torch.lolgps import StreamConfig
-from lolgps_torch.lolgps.stream import StreamLearner
-from lolgps_torch.policy import GaussianPolicy
-from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.lolgps.distillation import Checked, CheckedSStep
+from lolgps_torch.policy import GaussianPolicy, PolicyConfig
 
 SCRIPT = [sys.executable, "scripts/run_stream.py", "--urdf", "robots/kuka_peg.urdf"]
 
@@ -164,21 +160,16 @@ def test_default_stream_policy_succeeds_at_7_of_8(arm: str, seed: int, tmp_path:
     assert sum(bool(e["policy_success_end"]) for e in entries) >= 7
 
 
-class _ScriptedStream:
-    """What :meth:`StreamLearner.distill_checked` touches, with a scripted S-step (it writes the
-    round's number into the policy's first bias) and scripted closed-loop distances."""
+class _ScriptedDistiller:
+    """A scripted S-step for :class:`CheckedSStep`: it writes the round's number into the
+    policy's first bias and records its arguments."""
 
-    threshold = StreamLearner.threshold
-    _score = StreamLearner._score
+    config = PolicyConfig()
 
-    def __init__(self, distances: list[list[float]], repairs: int) -> None:
-        self.config = StreamConfig(repairs=repairs)
-        self.policy = GaussianPolicy(3, 1)
-        self.replay = SimpleNamespace(offsets=lambda: [(0.0, 0.0)])
-        self.task = SimpleNamespace(config=SimpleNamespace(world=WorldConfig()))
-        self.scripted, self.calls = iter(distances), []
+    def __init__(self) -> None:
+        self.calls: list[tuple[int, frozenset[int], int | None]] = []
 
-    def distill(self, policy, new, seed, emphasis=frozenset(), config=None):  # type: ignore[no-untyped-def]
+    def __call__(self, policy, new, seed, emphasis=frozenset(), config=None):  # type: ignore[no-untyped-def]
         self.calls.append((seed, emphasis, config.steps if config else None))
         with torch.no_grad():
             policy.net[0].bias[0] = len(self.calls) - 1
@@ -186,33 +177,35 @@ class _ScriptedStream:
         return [float(len(self.calls))]
 
 
-def _checked(stream: _ScriptedStream, monkeypatch: pytest.MonkeyPatch) -> tuple[Any, ...]:
-    monkeypatch.setattr(stream_module, "policy_distances", lambda *a: next(stream.scripted))
+def _checked(
+    distances: list[list[float]], repairs: int
+) -> tuple[Checked, _ScriptedDistiller, GaussianPolicy]:
+    """Run :class:`CheckedSStep` with scripted S-steps and closed-loop distances at the
+    replay's position and the new one."""
+    distill, scripted, policy = _ScriptedDistiller(), iter(distances), GaussianPolicy(3, 1)
+    sstep = CheckedSStep(distill, lambda *a: next(scripted), 0.06, repairs)  # type: ignore[arg-type]
     item = SimpleNamespace(offset=(0.01, 0.0))
-    return StreamLearner.distill_checked(stream, item, seed=5)  # type: ignore[arg-type]
+    checked = sstep(policy, item, [(0.0, 0.0), (0.01, 0.0)], seed=5)  # type: ignore[arg-type]
+    return checked, distill, policy
 
 
-def test_a_missed_condition_is_repaired_with_its_rows_twice(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    stream = _ScriptedStream([[0.001, 0.2], [0.3, 0.2], [0.001, 0.001]], repairs=3)
-    losses, after, rounds = _checked(stream, monkeypatch)
-    assert rounds == 2 and after == 0.001 and losses == [3.0]
+def test_a_missed_condition_is_repaired_with_its_rows_twice() -> None:
+    checked, distill, policy = _checked([[0.001, 0.2], [0.3, 0.2], [0.001, 0.001]], repairs=3)
+    assert checked == ([3.0], [0.001, 0.001], 2)
     # the first S-step in full; repairs from the best so far, a third of the steps, the missed
     # condition (place 1: the new one, after the replay's) emphasised
-    steps = StreamConfig().policy.steps
-    assert stream.calls == [(5, frozenset(), None), (5 + 1_000_003, frozenset({1}), steps // 3),
-                            (5 + 2_000_006, frozenset({1}), steps // 3)]  # fmt: skip
-    assert float(stream.policy.net[0].bias[0]) == 2.0  # the round that reached both is kept
+    steps = PolicyConfig().steps
+    assert distill.calls == [(5, frozenset(), None), (5 + 1_000_003, frozenset({1}), steps // 3),
+                             (5 + 2_000_006, frozenset({1}), steps // 3)]  # fmt: skip
+    assert float(policy.net[0].bias[0]) == 2.0  # the round that reached both is kept
 
 
-def test_without_a_better_round_the_first_policy_is_kept(monkeypatch: pytest.MonkeyPatch) -> None:
-    stream = _ScriptedStream([[0.001, 0.2], [0.3, 0.2], [0.001, 0.25]], repairs=2)
-    losses, after, rounds = _checked(stream, monkeypatch)
-    assert rounds == 2 and after == 0.2 and losses == [1.0]
-    assert float(stream.policy.net[0].bias[0]) == 0.0
-    no_repairs = _ScriptedStream([[0.001, 0.2]], repairs=0)
-    assert _checked(no_repairs, monkeypatch)[2] == 0 and len(no_repairs.calls) == 1
+def test_without_a_better_round_the_first_policy_is_kept() -> None:
+    checked, _, policy = _checked([[0.001, 0.2], [0.3, 0.2], [0.001, 0.25]], repairs=2)
+    assert checked == ([1.0], [0.001, 0.2], 2)
+    assert float(policy.net[0].bias[0]) == 0.0
+    checked, distill, _ = _checked([[0.001, 0.2]], repairs=0)
+    assert checked.rounds == 0 and len(distill.calls) == 1
 
 
 def test_retention_script_tabulates_every_checkpoint(small_run: Path, tmp_path: Path) -> None:

@@ -25,7 +25,7 @@ from __future__ import annotations
 import copy
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Literal, NamedTuple, get_args
 
 import torch
@@ -38,6 +38,7 @@ from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
 from lolgps_torch.lolgps.distillation import (
+    CheckedSStep,
     Distiller,
     Labelled,
     Labels,
@@ -173,12 +174,18 @@ class StreamLearner:
         self.task, self.config, self.folder, self.log = task, config, folder, log
         self.policy = GaussianPolicy(task.layout.dX, task.layout.dU, config.policy, task.device)
         self.replay = ReplayBuffer(folder.replay_path)
-        self.distill = Distiller(
+        distill = Distiller(
             task,
             config.policy,
             config.augment,
             config.augment_scale,
             self.replay if config.replay else None,
+        )
+        self.sstep = CheckedSStep(
+            distill,
+            lambda policy, offsets: policy_distances(task, policy, offsets),
+            self.threshold,
+            config.repairs,
         )
 
     def learn_condition(self, index: int, offset: tuple[float, float]) -> ConditionSummary:
@@ -196,7 +203,9 @@ class StreamLearner:
         labels = label_source(final, local < self.threshold, outcome.found.latest)
         data = label(self.task, outcome.found.kept, labels)
         t0 = time.perf_counter()
-        losses, after, repairs = self.distill_checked(Labelled(offset, data, labels), seed)
+        offsets = [*(self.replay.offsets() if self.config.replay else []), offset]
+        checked = self.sstep(self.policy, Labelled(offset, data, labels), offsets, seed)
+        losses, after, repairs = checked.losses, checked.distances[-1], checked.rounds
         rows = int(data.x.shape[0]) * self.task.T
         self.log(DistillRecord(index, time.perf_counter() - t0, rows, repairs=repairs))
         entry = ConditionSummary(
@@ -223,41 +232,11 @@ class StreamLearner:
         )
         return entry
 
-    def distill_checked(self, item: Labelled, seed: int) -> tuple[list[float], float, int]:
-        """The S-step (eq. 8), checked in closed loop: the policy's noiseless rollouts at every
-        condition learnt so far (with the replay; else the new one). While one misses, up to
-        ``repairs`` more rounds of ``steps // 3`` Adam steps, each from the best policy so far
-        with the missed conditions' rows entering twice; the policy reaching the most
-        conditions (then the smallest total distance) is kept. Returns the kept round's
-        losses, the new condition's distance and the rounds run."""
-        offsets = [*(self.replay.offsets() if self.config.replay else []), item.offset]
-        losses = self.distill(self.policy, [item], seed)
-        if not self.policy.trained:
-            return losses, float("nan"), 0
-        distances = policy_distances(self.task, self.policy, offsets)
-        best = (self._score(distances), copy.deepcopy(self.policy.state_dict()), losses, distances)
-        rounds, repair = 0, replace(self.config.policy, steps=max(1, self.config.policy.steps // 3))
-        while rounds < self.config.repairs and best[0][0] < len(offsets):
-            rounds += 1
-            self.policy.load_state_dict(best[1])
-            missed = frozenset(i for i, d in enumerate(best[3]) if not d < self.threshold)
-            losses = self.distill(self.policy, [item], seed + 1_000_003 * rounds, missed, repair)
-            distances = policy_distances(self.task, self.policy, offsets)
-            if self._score(distances) > best[0]:
-                state = copy.deepcopy(self.policy.state_dict())
-                best = (self._score(distances), state, losses, distances)
-        self.policy.load_state_dict(best[1])
-        return best[2], best[3][-1], rounds
-
     def noiseless(self, teacher: Teacher, offset: tuple[float, float]) -> float:
         """Final distance (m) of the teacher's noiseless rollout at ``offset``."""
         if isinstance(teacher, PolicyTeacher):
             return policy_distances(self.task, teacher.policy, [offset])[0]
         return noiseless_distance(self.task, teacher, offset)
-
-    def _score(self, distances: list[float]) -> tuple[int, float]:
-        """Conditions reached, then minus the total distance: the larger the better."""
-        return sum(d < self.threshold for d in distances), -sum(distances)
 
     def transfer(
         self, learner: LocalLearner, linearize: Linearizer | None, index: int

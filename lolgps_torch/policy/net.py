@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Literal, get_args
 
 import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError, check_fields
+
+AdamDtype = Literal["float32", "float64"]
 
 
 @dataclass(frozen=True)
@@ -24,8 +26,8 @@ class PolicyConfig:
         input -> 4 x 42 ReLU -> dU).
     :param learning_rate: Adam step size (original GPS: 1e-3).
     :param batch_size: rows per Adam minibatch.
-    :param steps: Adam steps per S-step; with ``batch_size`` 64 about 13 passes over 10k rows
-        (the original GPS: 4000 steps of 25).
+    :param steps: Adam steps per S-step (the original GPS: 4000 steps of 25). With 500 the
+        Panda's seed-2 stream kept 6/8 positions (docs/RESULTS.md section 12).
     :param std_floor: lower bound on the whitening standard deviation, so constant state
         dimensions (zero variance) do not divide by zero.
     :param seed: seed of the weight initialisation and of the S-step's minibatch draws.
@@ -34,6 +36,11 @@ class PolicyConfig:
         torch's setting). Its matrices are too small to gain from threads, and on busy cores
         each parallel region waits for a descheduled thread: with 2 threads on 2 loaded cores a
         step took ~20x longer than with 1.
+    :param feedback: the gain head, ``mu = a(h) + B(h) z`` (off: the plain MLP ``a(h)``).
+    :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
+        scaled targets); the policy itself stays float64. float32 takes a third less time and
+        fits as well, but refitting Panda seed 1's stream with it kept 6/8 positions against
+        8/8 in float64 (docs/RESULTS.md section 12.1), so float64 stays the default.
     """
 
     hidden_sizes: tuple[int, ...] = (42, 42, 42, 42)
@@ -45,6 +52,7 @@ class PolicyConfig:
     pre_weight: float = 0.1
     num_threads: int | None = 1
     feedback: bool = True
+    adam_dtype: AdamDtype = "float64"
 
     def __post_init__(self) -> None:
         check_fields(
@@ -58,6 +66,7 @@ class PolicyConfig:
                 "seed": self.seed >= 0,
                 "pre_weight": 0.0 <= self.pre_weight < math.inf,
                 "num_threads": self.num_threads is None or self.num_threads >= 1,
+                "adam_dtype": self.adam_dtype in get_args(AdamDtype),
             },
         )
 
@@ -138,7 +147,7 @@ class GaussianPolicy(torch.nn.Module):
             return self.net(z)
         h = self.net[:-1](z)
         gain = self.gain(h).unflatten(-1, (self.dU, self.dX))
-        return self.net[-1](h) + (gain @ z.unsqueeze(-1)).squeeze(-1)
+        return self.net[-1](h) + (gain * z.unsqueeze(-2)).sum(-1)
 
     def covariance(self) -> Tensor:
         """``Sigma_pi = diag(sigma^2)``, ``[dU, dU]``."""

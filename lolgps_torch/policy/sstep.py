@@ -10,6 +10,7 @@ Layout: rows are states flattened over samples and time, ``[M, ...]``.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -38,8 +39,9 @@ def _check(batch: DistillBatch) -> None:
 
 
 def _quadratic(diff: Tensor, prec: Tensor) -> Tensor:
-    """``d_m^T P_m d_m`` for ``diff: [M, dU]``, ``prec: [M, dU, dU]`` -> ``[M]``."""
-    return (diff.unsqueeze(-2) @ prec @ diff.unsqueeze(-1)).flatten()
+    """``d_m^T P_m d_m`` for ``diff: [M, dU]``, ``prec: [M, dU, dU]`` -> ``[M]`` (as products
+    and sums: on CPU a batched matmul of M tiny matrices costs more)."""
+    return (diff * (prec * diff.unsqueeze(-2)).sum(-1)).sum(-1)
 
 
 def _logdet_pd(matrix: Tensor, name: str) -> Tensor:
@@ -153,12 +155,26 @@ def _intra_op_threads(n: int | None) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch) -> DistillBatch:
-    """The batch as the Adam loop reads it: states whitened, ``(x - x_mean) / x_std``, and
-    ``P_pre`` zeroed where there is no p_pre (so gathered rows need no mask)."""
-    x = (batch.x - policy.x_mean) / policy.x_std
+def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch, dtype: torch.dtype) -> DistillBatch:
+    """The batch as the Adam loop reads it, in the net's own units and in ``dtype``: states
+    whitened, ``z = (x - x_mean) / x_std``; means scaled, ``(mu - u_mean) / u_scale``;
+    precisions scaled, ``S P S`` with ``S = diag(u_scale)``, so that :func:`_row_quadratics` of
+    the net's unscaled output equals that of ``mu_theta`` on the raw rows (the quadratic form
+    is invariant under the change of units); ``P_pre`` zeroed where there is no p_pre (so
+    gathered rows need no mask). Computed in float64 and then rounded: every field is O(1)
+    (the whitening resolves 1e-7 of a state's spread in float32, sub-micrometre for the peg)."""
+    scale = policy.u_scale
+    outer = scale[:, None] * scale[None, :]
     prec_pre = torch.where(batch.has_pre[:, None, None], batch.prec_pre, 0.0)
-    return batch._replace(x=x, prec_pre=prec_pre)
+    scaled = DistillBatch(
+        x=(batch.x - policy.x_mean) / policy.x_std,
+        mean_cur=(batch.mean_cur - policy.u_mean) / scale,
+        prec_cur=batch.prec_cur * outer,
+        mean_pre=(batch.mean_pre - policy.u_mean) / scale,
+        prec_pre=prec_pre * outer,
+        has_pre=batch.has_pre,
+    )
+    return DistillBatch(*(f.to(dtype) if f.is_floating_point() else f for f in scaled))
 
 
 def distill(
@@ -171,13 +187,15 @@ def distill(
 
     Steps: whitening, ``Sigma_pi`` and output scaling from the batch (:func:`set_statistics`);
     each row's constant part of the loss (:func:`_row_constants`); then ``config.steps``
-    ``torch.optim.Adam`` (foreach) steps (fresh optimiser state, learning rate decayed along a cosine to
+    ``torch.optim.Adam`` steps (fused; fresh optimiser state, learning rate decayed along a cosine to
     5% of ``config.learning_rate``) on minibatches of ``config.batch_size`` rows drawn
     uniformly with replacement, from the current weights (the policy keeps what earlier
     S-steps taught it), on ``config.num_threads`` intra-op threads. Only the precision-weighted
-    regression term (:func:`_row_quadratics`) depends on theta; autograd differentiates it.
-    The loss recorded per step is the full KL loss of that minibatch. Marks the policy
-    trained. Deterministic for a given ``generator`` state.
+    regression term (:func:`_row_quadratics`) depends on theta; autograd differentiates it, in
+    the net's own units (:func:`_sgd_rows`) and in ``config.adam_dtype``: a copy of the net in
+    that type is trained and its weights are written back into the float64 policy. The loss
+    recorded per step is the full KL loss of that minibatch. Marks the policy trained.
+    Deterministic for a given ``generator`` state.
 
     :param policy: the global policy, trained in place.
     :param batch: successful states with their targets (detached here).
@@ -190,25 +208,30 @@ def distill(
     _check(batch)
     batch = DistillBatch(*(field.detach() for field in batch))
     set_statistics(policy, batch, config.pre_weight)
+    dtype = getattr(torch, config.adam_dtype)
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
-    history = batch.x.new_empty(config.steps)
-    weights = [w for w in policy.parameters() if w.requires_grad]
-    optimiser = torch.optim.Adam(weights, lr=config.learning_rate, foreach=True)
+    draws = draws.to(batch.x.device)
+    history: list[Tensor] = []
+    trainee = copy.deepcopy(policy).to(dtype)
+    weights = [w for w in trainee.parameters() if w.requires_grad]
+    optimiser = torch.optim.Adam(weights, lr=config.learning_rate, fused=True)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
         optimiser, config.steps, eta_min=0.05 * config.learning_rate
     )
     with _intra_op_threads(config.num_threads):
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)
-            rows_all = _sgd_rows(policy, batch)
-        for step, index in enumerate(draws.to(batch.x.device)):
+            rows_all = _sgd_rows(policy, batch, dtype)
+        for index in draws:
             rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
-            mean = torch.addcmul(policy.u_mean, policy.unscaled(rows.x), policy.u_scale)
-            loss = _row_quadratics(mean, rows, config.pre_weight).mean()
+            loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
             schedule.step()
-            history[step] = loss.detach() + constant.index_select(0, index).mean()
+            history.append(loss.detach())
+    with torch.no_grad():
+        for mine, trained in zip(policy.parameters(), trainee.parameters(), strict=True):
+            mine.copy_(trained)
     policy.trained = True
-    return history.tolist()
+    return (torch.stack(history).to(constant.dtype) + constant[draws].mean(1)).tolist()

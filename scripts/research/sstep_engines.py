@@ -1,9 +1,11 @@
 """Time the S-step's Adam loop (paper eq. 8) on the engines torch offers, on one synthetic batch.
 
     python scripts/research/sstep_engines.py [--rows 40000] [--steps 300] [--repeats 3]
-                                             [--width 42] [--batch-size 128] [--dtype float64]
+                                             [--width 42] [--batch-size 512] [--dtype float32]
+                                             [--plain]
 
-Engines, each fitting the same net from the same weights on the same minibatches:
+Engines, each fitting the same policy (the gain head; ``--plain``: the plain MLP, as up to
+aae6f53) from the same weights on the same minibatches:
 
 - ``hand-written``: the backward pass and Adam on one flat weight vector that
   ``lolgps_torch.policy.sstep`` held up to aae6f53 (``FlatMLP``, ``Adam``), when the package on
@@ -46,8 +48,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--width", type=int, default=42)
-    parser.add_argument("--batch-size", type=int, default=128)
-    parser.add_argument("--dtype", choices=("float64", "float32"), default="float64")
+    parser.add_argument("--batch-size", type=int, default=512)
+    parser.add_argument("--dtype", choices=("float64", "float32"), default="float32")
+    parser.add_argument("--plain", action="store_true", help="the plain MLP (no gain head)")
     return parser.parse_args()
 
 
@@ -65,9 +68,12 @@ def synthetic_batch(rows: int, dX: int, dU: int) -> DistillBatch:
 
 
 def quadratic(mean: Tensor, target: Tensor, prec: Tensor) -> Tensor:
-    """``1/2 mean_rows (mu - target)^T P (mu - target)``."""
-    d = (mean - target).unsqueeze(-1)
-    return 0.5 * (d.mT @ prec @ d).mean()
+    """``1/2 mean_rows (mu - target)^T P (mu - target)``, by the S-step's own quadratic form."""
+    return 0.5 * SSTEP._quadratic(mean - target, prec).mean()
+
+
+def weights(policy: GaussianPolicy) -> list[Tensor]:
+    return [w for w in policy.parameters() if w.requires_grad]
 
 
 def autograd_engine(
@@ -77,12 +83,11 @@ def autograd_engine(
     fused: bool | None = None,
 ) -> Step:
     x, target, prec = rows
-    optimiser = torch.optim.Adam(policy.net.parameters(), lr=1e-3, foreach=foreach, fused=fused)
+    optimiser = torch.optim.Adam(weights(policy), lr=1e-3, foreach=foreach, fused=fused)
 
     def step(index: Tensor) -> None:
         optimiser.zero_grad(set_to_none=True)
-        mean = torch.addcmul(policy.u_mean, policy.net(x[index]), policy.u_scale)
-        quadratic(mean, target[index], prec[index]).backward()
+        quadratic(policy(x[index]), target[index], prec[index]).backward()
         optimiser.step()
 
     return step
@@ -90,12 +95,11 @@ def autograd_engine(
 
 def compiled_engine(policy: GaussianPolicy, rows: tuple[Tensor, ...]) -> tuple[Step, float]:
     x, target, prec = rows
-    optimiser = torch.optim.Adam(policy.net.parameters(), lr=1e-3, foreach=True)
+    optimiser = torch.optim.Adam(weights(policy), lr=1e-3, foreach=True)
 
     @torch.compile(dynamic=False)
     def loss_of(xb: Tensor, tb: Tensor, pb: Tensor) -> Tensor:
-        mean = torch.addcmul(policy.u_mean, policy.net(xb), policy.u_scale)
-        return quadratic(mean, tb, pb)
+        return quadratic(policy(xb), tb, pb)
 
     def step(index: Tensor) -> None:
         optimiser.zero_grad(set_to_none=True)
@@ -109,12 +113,11 @@ def compiled_engine(policy: GaussianPolicy, rows: tuple[Tensor, ...]) -> tuple[S
 
 def func_engine(policy: GaussianPolicy, rows: tuple[Tensor, ...]) -> Step:
     x, target, prec = rows
-    params = dict(policy.net.named_parameters())
+    params = {k: v for k, v in policy.named_parameters() if v.requires_grad}
     optimiser = torch.optim.Adam(params.values(), lr=1e-3, foreach=True)
 
     def loss_of(p: dict[str, Tensor], xb: Tensor, tb: Tensor, pb: Tensor) -> Tensor:
-        out = torch.func.functional_call(policy.net, p, (xb,))
-        return quadratic(torch.addcmul(policy.u_mean, out, policy.u_scale), tb, pb)
+        return quadratic(torch.func.functional_call(policy, p, (xb,)), tb, pb)
 
     grad_of = torch.func.grad(loss_of)
 
@@ -157,7 +160,9 @@ def main() -> None:
     dtype = getattr(torch, args.dtype)
     dX, dU = 26, 7
     batch = synthetic_batch(args.rows, dX, dU)
-    config = PolicyConfig(hidden_sizes=(args.width,) * 4, batch_size=args.batch_size)
+    config = PolicyConfig(
+        hidden_sizes=(args.width,) * 4, batch_size=args.batch_size, feedback=not args.plain
+    )
     gen = torch.Generator().manual_seed(1)
     draws = torch.randint(args.rows, (args.steps, args.batch_size), generator=gen)
 
@@ -165,7 +170,7 @@ def main() -> None:
         policy = GaussianPolicy(dX, dU, config)
         set_statistics(policy, batch, 0.1)
         policy.to(dtype)
-        x = ((batch.x - policy.x_mean) / policy.x_std).to(dtype)
+        x = batch.x.to(dtype)
         return policy, (x, batch.mean_cur.to(dtype), batch.prec_cur.to(dtype))
 
     compile_seconds: list[float] = []
@@ -182,7 +187,7 @@ def main() -> None:
         "torch.func, Adam foreach": lambda: func_engine(*fresh()),
         "torch.compile, Adam foreach": compiled,
     }
-    if args.dtype == "float64" and hasattr(SSTEP, "FlatMLP"):
+    if args.dtype == "float64" and args.plain and hasattr(SSTEP, "FlatMLP"):
         engines["hand-written"] = lambda: hand_engine(fresh()[0], batch)
     best: dict[str, float] = {}
     for _ in range(args.repeats):

@@ -1,0 +1,129 @@
+"""Where one stream S-step's time goes, rebuilt from a finished run (paper eq. 8).
+
+    python scripts/research/sstep_profile.py --run DIR [--condition K] [--repeats 2]
+
+The S-step of condition ``K`` (default: the last) is rebuilt as the stream ran it: the
+replay of conditions ``0 .. K-1`` (copied into a temporary replay file), condition ``K``'s D_g
+as the new item labelled by its stored controllers, and the policy checkpointed after
+``K - 1``, with the run's S-step settings. It prints the rows, then the seconds (best of
+``--repeats``, CPU time of this process) of each part: reading the replay, the new D_g's
+perturbed copies, the statistics and constant terms, the Adam loop (the whole call less
+those), and one closed-loop check (the policy's noiseless rollouts at the ``K + 1`` positions
+learnt so far).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from lolgps_torch.cli import run
+from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.run import load_run
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
+from lolgps_torch.lolgps.stream import policy_distances
+from lolgps_torch.policy import GaussianPolicy
+from lolgps_torch.policy.sstep import _row_constants, _sgd_rows, set_statistics
+from lolgps_torch.types import DistillBatch
+
+
+def parse_args() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--run", required=True, help="finished run folder")
+    parser.add_argument("--condition", type=int, default=None, help="(default: the last)")
+    parser.add_argument("--repeats", type=int, default=2)
+    return parser.parse_args()
+
+
+def best_seconds(body: Callable[[], Any], repeats: int) -> tuple[float, Any]:
+    """The smallest process CPU time of ``repeats`` calls of ``body``, and its last result."""
+    best, result = float("inf"), None
+    for _ in range(repeats):
+        start = time.process_time()
+        result = body()
+        best = min(best, time.process_time() - start)
+    return best, result
+
+
+def main() -> None:
+    args = parse_args()
+    loaded = load_run(args.run)
+    k = args.condition if args.condition is not None else loaded.records[-1].condition
+    if not 0 <= k < len(loaded.records):
+        raise LolgpsError(f"--condition {k}: the run has conditions 0 .. {len(loaded.records) - 1}")
+    record = loaded.records[k]
+    if record.p_cur is None:
+        raise LolgpsError(f"condition {k} was labelled by the policy: no controller to augment")
+    stream = loaded.info.stream
+    task = loaded.make_task()
+    policy: GaussianPolicy = (
+        loaded.policy(k - 1)
+        if k > 0
+        else GaussianPolicy(task.layout.dX, task.layout.dU, loaded.policy(0).config)
+    )
+    config = policy.config
+    labels = Labels(record.p_cur, record.p_pre, record.iterations)
+    item = Labelled(record.offset, record.samples, labels)
+    with tempfile.TemporaryDirectory() as tmp:
+        replay = ReplayBuffer(Path(tmp) / "replay.h5")
+        for r in loaded.records[:k]:
+            replay.append_condition(
+                r.condition, r.offset, r.samples, r.iterations, r.p_cur, r.p_pre
+            )
+        distiller = Distiller(task, config, stream["augment"], stream["augment_scale"], replay)
+        gen = torch.Generator().manual_seed(0)
+        t_read, stored = best_seconds(
+            lambda: [replay.read_condition(i).samples.to_batch() for i in replay.conditions()],
+            args.repeats,
+        )
+        t_aug, aug = best_seconds(lambda: distiller._augmented(item, gen), args.repeats)
+        batch = DistillBatch(
+            *(torch.cat(f) for f in zip(*stored, record.samples.to_batch(), aug, strict=True))
+        )
+
+        def statistics() -> None:
+            set_statistics(policy, batch, config.pre_weight)
+            with torch.no_grad():
+                _row_constants(policy.covariance(), batch, config.pre_weight)
+                _sgd_rows(policy, batch, getattr(torch, config.adam_dtype))
+
+        t_stats, _ = best_seconds(statistics, args.repeats)
+        state = {n: v.clone() for n, v in policy.state_dict().items()}
+
+        def call() -> (
+            None
+        ):  # a fresh Distiller, so the call reads the replay as a stream's first does
+            policy.load_state_dict(state)
+            policy.trained = True
+            Distiller(task, config, stream["augment"], stream["augment_scale"], replay)(
+                policy, [item], 0
+            )
+
+        t_all, _ = best_seconds(call, args.repeats)
+        offsets = [r.offset for r in loaded.records[: k + 1]]
+        t_check, _ = best_seconds(lambda: policy_distances(task, policy, offsets), args.repeats)
+    task.close()
+    adam = t_all - t_read - t_aug - t_stats
+    print(
+        f"condition {k}: {batch.M} rows ({record.samples.x.shape[0]} new successes, "
+        f"{sum(b.M for b in stored)} replay rows, {aug.M} perturbed rows); "
+        f"{config.steps} Adam steps of {config.batch_size}"
+    )
+    print(
+        f"CPU seconds: S-step call {t_all:.2f} = replay read {t_read:.2f} + perturbed copies "
+        f"{t_aug:.2f} + statistics {t_stats:.2f} + Adam loop {adam:.2f}; "
+        f"one closed-loop check at {len(offsets)} positions {t_check:.2f}"
+    )
+
+
+if __name__ == "__main__":
+    run(main)
