@@ -199,3 +199,55 @@ def run_script(capfd: pytest.CaptureFixture[str]) -> Callable[..., ScriptRun]:
         return ScriptRun(code, out, err)
 
     return run
+
+
+def fk_gap(task: Any, poses: int = 5) -> float:
+    """Largest |pytorch-kinematics - PyBullet| peg point difference (m) of a ``PegTask`` at
+    random poses."""
+    import numpy as np
+    import torch
+
+    world, arm, rng = task.sampler.worlds[0], task.arm, np.random.default_rng(0)
+    worst = 0.0
+    for _ in range(poses):
+        q = rng.uniform(arm.lower, arm.upper)
+        world.reset(q)
+        fk = task.kinematics.points(torch.tensor(q)).numpy()
+        worst = max(worst, float(np.abs(fk - world.points()).max()))
+    return worst
+
+
+def check_published_arm(urdf: str, dof: int, ee_link: str | None = None) -> None:
+    """A published description as published: ``dof`` actuated joints (ending at ``ee_link``,
+    if given), kinematics agreeing with PyBullet's at random poses, every position of the
+    paper stream reachable from the placed hole (one batched IK; test_world checks
+    ``PegTask.check_reachable`` itself), and one short iteration of the local learner."""
+    import warnings
+
+    import numpy as np
+    import torch
+
+    from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
+    from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+    from lolgps_torch.robot.placement import PlacementConfig, solve_ik_batch
+    from lolgps_torch.robot.validate import ArmWarning
+    from lolgps_torch.sim.world import WorldConfig
+    from lolgps_torch.task import PegTask, TaskConfig
+
+    stream = tuple(default_training_stream(AreaConfig(), 0)[0])
+    placement = PlacementConfig(positions=stream)
+    config = TaskConfig(urdf=urdf, world=WorldConfig(T=10), placement=placement)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        task = PegTask(config, n_worlds=2)
+    try:
+        assert task.arm.dof == dof
+        assert ee_link is None or task.arm.ee_link == ee_link
+        assert fk_gap(task) < 1e-6
+        _, error = solve_ik_batch(task.kinematics, task.arm, task.targets(list(stream)), margin=0.0)
+        assert float(error.max()) <= placement.ik_tolerance
+        learner = LocalLearner(task, stream[0], LocalConfig(samples=2), seed=0)
+        samples, _, record = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
+        assert torch.isfinite(samples.cost).all() and np.isfinite(record.mean_cost)
+    finally:
+        task.close()

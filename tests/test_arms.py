@@ -18,14 +18,13 @@ import numpy as np
 import pybullet_data
 import pytest
 import torch
-from conftest import ScriptRun
+from conftest import ScriptRun, check_published_arm
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.robot.arm import PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
-from lolgps_torch.robot.placement import PlacementConfig, solve_ik_batch
+from lolgps_torch.robot.placement import PlacementConfig
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
@@ -202,43 +201,13 @@ def _write(tmp: Path, name: str, text: str) -> str:
     return str(tmp / name)
 
 
-def _fk_gap(task: PegTask, poses: int = 5) -> float:
-    """Largest |pytorch-kinematics - PyBullet| peg point difference (m) at random poses."""
-    world, arm = task.sampler.worlds[0], task.arm
-    rng = np.random.default_rng(0)
-    worst = 0.0
-    for _ in range(poses):
-        q = rng.uniform(arm.lower, arm.upper)
-        world.reset(q)
-        fk = task.kinematics.points(torch.tensor(q)).numpy()
-        worst = max(worst, float(np.abs(fk - world.points()).max()))
-    return worst
-
-
 @pytest.mark.parametrize("name", sorted(CORPUS))
 def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
     """Loaded as published (``package://`` meshes absent: warned, not refused), the kinematics
     agree with PyBullet, the hole is placed so that the whole default stream is reachable, and
     one iteration of the trajectory-centric loop runs (a short episode)."""
     urdf, dof = CORPUS[name]
-    config = TaskConfig(
-        urdf=urdf, world=WorldConfig(T=10), placement=PlacementConfig(positions=PAPER_STREAM)
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ArmWarning)
-        task = PegTask(config, n_worlds=2)
-    try:
-        assert task.arm.dof == dof
-        assert _fk_gap(task) < 1e-6
-        # PegTask.check_reachable's IK at every position at once (test_world checks the method)
-        targets = task.targets(list(PAPER_STREAM))
-        _, error = solve_ik_batch(task.kinematics, task.arm, targets, margin=0.0)
-        assert float(error.max()) <= task.config.placement.ik_tolerance
-        learner = LocalLearner(task, PAPER_STREAM[0], LocalConfig(samples=2), seed=0)
-        samples, _, record = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
-        assert torch.isfinite(samples.cost).all() and np.isfinite(record.mean_cost)
-    finally:
-        task.close()
+    check_published_arm(urdf, dof)
 
 
 @pytest.mark.parametrize("name", sorted(REFUSED))

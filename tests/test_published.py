@@ -15,17 +15,14 @@ import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-import numpy as np
 import pybullet_data
 import pytest
-import torch
+from conftest import check_published_arm, fk_gap
 
 from lolgps_torch.data.run_folder import portable_urdf
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.robot.arm import ArmSpec, load_arm
-from lolgps_torch.robot.placement import PlacementConfig
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
@@ -91,40 +88,12 @@ def _load_quietly(path: str | Path, ee_link: str | None = None) -> tuple[ArmSpec
     return arm, [str(w.message) for w in caught if issubclass(w.category, ArmWarning)]
 
 
-def _fk_gap(task: PegTask, poses: int = 5) -> float:
-    """Largest |pytorch-kinematics - PyBullet| peg point difference (m) at random poses."""
-    world, arm = task.sampler.worlds[0], task.arm
-    rng = np.random.default_rng(0)
-    worst = 0.0
-    for _ in range(poses):
-        q = rng.uniform(arm.lower, arm.upper)
-        world.reset(q)
-        fk = task.kinematics.points(torch.tensor(q)).numpy()
-        worst = max(worst, float(np.abs(fk - world.points()).max()))
-    return worst
-
-
 @pytest.mark.parametrize("name", sorted(PUBLISHED))
 def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
     """As published, the end effector is found, the kinematics agree with PyBullet, the whole
     default stream is reachable from the placed hole, and one short iteration runs."""
     urdf, dof, ee_link = PUBLISHED[name]
-    config = TaskConfig(
-        urdf=str(urdf), world=WorldConfig(T=10), placement=PlacementConfig(positions=PAPER_STREAM)
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ArmWarning)
-        task = PegTask(config, n_worlds=2)
-    try:
-        assert (task.arm.dof, task.arm.ee_link) == (dof, ee_link)
-        assert _fk_gap(task) < 1e-6
-        for offset in PAPER_STREAM:
-            task.check_reachable(offset)
-        learner = LocalLearner(task, PAPER_STREAM[0], LocalConfig(samples=2), seed=0)
-        samples, _, record = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
-        assert torch.isfinite(samples.cost).all() and np.isfinite(record.mean_cost)
-    finally:
-        task.close()
+    check_published_arm(str(urdf), dof, ee_link)
 
 
 @pytest.mark.parametrize("name", sorted(REFUSED))
@@ -255,7 +224,7 @@ def test_fuzzed_tool_extensions_load_or_give_one_error(tmp_path: Path, seed: int
         warnings.simplefilter("ignore", ArmWarning)
         task = PegTask(config, n_worlds=1)
     try:
-        assert _fk_gap(task, 2) < 1e-6
+        assert fk_gap(task, 2) < 1e-6
     finally:
         task.close()
 
