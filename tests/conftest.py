@@ -4,7 +4,7 @@ The suite runs on pytest-xdist workers (``-n auto`` in pyproject.toml), each tes
 one torch thread: the workers are the parallelism, and a second intra-op thread per process
 only spins against them (on a busy 2-core machine a C-step then takes several times as long).
 The modules whose tests share an expensive fixture (``GROUPS``) each run on one worker, so the
-fixture is built once; a shared fixture is also built once per session under a file lock
+fixture is built once; a shared fixture is also built once per test run under a file lock
 (``shared_dir``), whichever worker asks first. (xdist's own ``--dist loadgroup`` does not group
 under pytest 9, whose node ids xdist 3.8 cannot suffix: the grouping is done here, by
 :func:`pytest_xdist_make_scheduler`.) The groups start first, then the longest tests
@@ -97,7 +97,7 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
 def shared_dir(
     tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], None]
 ) -> Path:
-    """``<root>/<name>``, built by ``build(path)`` once per session: under xdist ``<root>`` is
+    """``<root>/<name>``, built by ``build(path)`` once per test run: under xdist ``<root>`` is
     the directory all workers' temporary directories share, and the first worker to ask
     builds it while holding a lock the others wait on."""
     base = tmp_path_factory.getbasetemp()
