@@ -250,7 +250,7 @@ class Scene:
     def __init__(
         self, arm: ArmSpec, config: WorldConfig, nominal_mouth: tuple[float, ...], view: View
     ) -> None:
-        self.world = PegWorld(arm, config, nominal_mouth)
+        self.world = PegWorld(arm, config, nominal_mouth, meshes=True)
         self.client, self.view = self.world.client, view
         self.depth = config.depth
         self.peg_link = self._link_index(arm.peg_link)
