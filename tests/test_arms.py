@@ -49,7 +49,6 @@ CORPUS = {
 # published descriptions that cannot do the task, and the flag or element their error names
 REFUSED = {
     "rtb-irb140": (ARMS / "abb_irb140_description/urdf/irb140.urdf", "link 'link_1': <inertial>"),
-    "rtb-kr16": (ARMS / "kuka_description/kuka_kr16/urdf/kr16_2.urdf", "joint 'joint_a1'"),
     "rtb-px100": (TROSSEN / "px100.urdf", "--peg-length"),
     "rtb-al5d": (ARMS / "lynxmotion_al5d_description/urdf/al5d_robot.urdf", "--peg-length"),
 }

@@ -3,7 +3,8 @@ robot_properties_fingers and rtb-data; pybullet_data's other arms): each loads, 
 PyBullet, places the default stream and runs an iteration, or stops with one error line
 naming what to change; and the loader's handling of what they carry (other tools' undeclared
 XML prefixes, unnamed visual materials, meshes PyBullet cannot read, robot fingers whose
-every joint is named ``finger_...``, tool frames beside gripper bases), fuzzed."""
+every joint is named ``finger_...``, tool frames beside gripper bases, torque limits given as
+0), fuzzed; the simulated arm without its visual meshes."""
 
 from __future__ import annotations
 
@@ -17,13 +18,16 @@ from pathlib import Path
 
 import pybullet_data
 import pytest
+import torch
 from conftest import check_published_arm, fk_gap
 
 from lolgps_torch.data.run_folder import portable_urdf
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.robot.arm import ArmSpec, load_arm
+from lolgps_torch.robot.effort import derived_effort
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -31,6 +35,7 @@ DATA = pybullet_data.getDataPath()
 ARMS = Path(__file__).resolve().parent / "data" / "arms"
 TROSSEN = ARMS / "trossen_descriptions" / "urdf"
 UR5E = ARMS / "airo_models/arms/ur5e/ur5e.urdf"
+KR16 = ARMS / "kuka_description/kuka_kr16/urdf/kr16_2.urdf"
 # published descriptions, as published: name -> (URDF, degrees of freedom, end effector found)
 PUBLISHED = {
     "airo-ur3e": (ARMS / "airo_models/arms/ur3e/ur3e.urdf", 6, "tool0"),
@@ -39,14 +44,13 @@ PUBLISHED = {
     "rtb-vx300": (TROSSEN / "vx300.urdf", 5, "/ee_arm_link"),
     "pybullet-xarm6-gripper": (Path(DATA, "xarm/xarm6_with_gripper.urdf"), 6, "link6"),
     "pybullet-iiwa-vr-limits": (Path(DATA, "kuka_iiwa/model_vr_limits.urdf"), 7, "lbr_iiwa_link_7"),
+    # ROS-Industrial: effort="0" on every joint, derived from the arm
+    "rtb-kr16": (KR16, 6, "tool0"),
+    "rtb-kr120": (ARMS / "kuka_description/kuka_kr120/urdf/kr120r2500pro.urdf", 6, "tool0"),
 }
 # published descriptions that cannot do the task as published: what their one error line says
 REFUSED = {
     "rtb-rx150": (TROSSEN / "rx150.urdf", "not the start 0.20 m (or half that) above the hole"),
-    "rtb-kr120": (
-        ARMS / "kuka_description/kuka_kr120/urdf/kr120r2500pro.urdf",
-        "joint 'joint_a1': <limit> effort must be positive",
-    ),
     "rtb-kr6": (  # its visuals' materials are named "": not what refuses it
         ARMS / "kuka_description/kuka_kr6/urdf/kr6r700sixx.urdf",
         "link 'link_1': <inertial> missing",
@@ -244,3 +248,80 @@ def test_run_folder_copy_of_a_description_with_undeclared_prefixes_loads(tmp_pat
     (tmp_path / "arm.urdf").write_text(copy)
     arm, _ = _load_quietly(tmp_path / "arm.urdf")
     assert arm.joint_names == _load_quietly(UR5E)[0].joint_names
+
+
+def _kr16_effort(tmp_path: Path, joint: str, effort: str) -> Path:
+    """ROS-Industrial's KR 16 with ``joint``'s ``effort="0"`` replaced by ``effort`` (an
+    attribute with its leading space, or "")."""
+    pattern = rf'(<joint name="{joint}".*?<limit) effort="0"'
+    text, found = re.subn(pattern, rf"\1{effort}", KR16.read_text(), count=1, flags=re.S)
+    assert found == 1
+    path = tmp_path / "kr16.urdf"
+    path.write_text(text)
+    return path
+
+
+def test_unknown_torque_limits_are_derived_from_the_arm_with_one_warning_each(
+    tmp_path: Path,
+) -> None:
+    """ROS-Industrial's KR 16 gives ``effort="0"`` on its six joints; here one joint gives no
+    effort at all.  Each gets the limit derived from the arm (positive, finite, also in the
+    URDF text PyBullet and pytorch-kinematics read), one warning per joint names it and the
+    value, and a short rollout at full torque stays finite."""
+    path = _kr16_effort(tmp_path, "joint_a3", "")
+    arm, caught = _load_quietly(path)
+    effort = [m for m in caught if "effort" in m]
+    assert len(effort) == 6
+    for name, value, message in zip(arm.joint_names, arm.effort, effort, strict=True):
+        assert f"joint {name!r}" in message and f"using {value:.4g} N m" in message
+    assert all(0 < e < float("inf") for e in arm.effort) and arm.effort == derived_effort(arm)
+    limits = {
+        joint.get("name"): joint.find("limit")
+        for joint in ET.fromstring(arm.urdf_text).iter("joint")
+    }
+    assert tuple(float(limits[n].get("effort", "nan")) for n in arm.joint_names) == arm.effort
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        task = PegTask(TaskConfig(urdf=str(path), world=WorldConfig(T=10)), n_worlds=1)
+    try:
+        limit = torch.tensor(arm.effort, dtype=torch.float64)
+        bang = lambda t, x, rows: limit * (-1) ** t * torch.ones(x.shape[0], 6, dtype=torch.float64)  # noqa: E731
+        assert torch.isfinite(task.sample(bang, [(0.0, 0.0)]).x).all()
+    finally:
+        task.close()
+
+
+@pytest.mark.parametrize(
+    ("effort", "message"),
+    [
+        ("-5", "joint 'joint_a2': <limit> effort must not be negative, got -5.0"),
+        ("abc", "joint 'joint_a2': <limit> effort='abc' is not a number"),
+    ],
+)
+def test_a_bad_torque_limit_gets_one_error_line(tmp_path: Path, effort: str, message: str) -> None:
+    path = _kr16_effort(tmp_path, "joint_a2", f' effort="{effort}"')
+    proc = _inspect("--urdf", str(path))
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and len(errors) == 1 and message in errors[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_the_simulated_arm_has_no_visual_meshes_and_moves_as_with_them() -> None:
+    """PyBullet reads every mesh file it is given (seconds for large ones): the learning
+    worlds load the arm without its visual meshes, the pictures' world (``meshes=True``) with
+    them, and both simulate bit for bit alike (pybullet_data's Panda, meshes for visuals)."""
+    arm, _ = _load_quietly(Path(DATA, "franka_panda/panda.urdf"))
+    mid = (torch.tensor(arm.lower) + torch.tensor(arm.upper)).numpy() / 2
+    torques = (
+        0.3
+        * torch.tensor(arm.effort)
+        * torch.randn(20, arm.dof, generator=torch.Generator().manual_seed(0))
+    )
+    runs = []
+    for meshes in (False, True):
+        world = PegWorld(arm, WorldConfig(), (0.5, 0.0, 0.0), meshes=meshes)
+        shapes = pb.getVisualShapeData(world.body, physicsClientId=world.client)
+        assert any(shape[2] == pb.GEOM_MESH for shape in shapes) == meshes
+        runs.append([world.reset(mid), *(world.step(u.numpy()) for u in torques)])
+        world.close()
+    assert all((a == b).all() for a, b in zip(*runs, strict=True))

@@ -229,7 +229,11 @@ LINK_0_VISUAL = '<geometry><cylinder radius="0.07" length="0.1575"/></geometry>'
             'lower="1" upper="1" effort="320"',
             "joint 'iiwa_joint_2': <limit> lower 1.0 is not below upper 1.0",
         ),
-        (JOINT_2_LIMIT, JOINT_2_LIMIT.replace("320", "0"), "joint 'iiwa_joint_2': <limit> effort"),
+        (
+            JOINT_2_LIMIT,
+            JOINT_2_LIMIT.replace("320", "-320"),
+            "joint 'iiwa_joint_2': <limit> effort must not be negative",
+        ),
         (
             ' velocity="1.4835298641951802"',
             "",

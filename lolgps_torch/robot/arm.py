@@ -28,7 +28,7 @@ import re
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -112,7 +112,8 @@ class ArmSpec:
     :param peg_link: the link whose collision shape is the peg (the only part touching the world).
     :param joint_names: actuated joints from base to end effector (the action order).
     :param lower: joint lower limits (rad). :param upper: joint upper limits (rad).
-    :param effort: torque limits (N m). :param velocity: velocity limits (rad/s).
+    :param effort: torque limits (N m; derived from the arm where the URDF gives 0 or none,
+        :mod:`.effort`). :param velocity: velocity limits (rad/s).
     :param point_offsets: the tip and top points in the point frame, ``((x, y, z), (x, y, z))``.
     :param peg_radius: peg radius (m), from the URDF or the attached peg.
     :param peg_axis: the end-effector link's axis the attached peg points along ("" for a peg
@@ -176,8 +177,11 @@ def load_arm(
     chain = path_joints(ee_link)
     actuated = _actuated_joints(chain, ee_link)
     elements = {j.get("name"): j for j in tree.findall("joint")}
-    for j in actuated:
-        check_actuated_limit(elements[j.name], f"{path}: joint {j.name!r}")
+    unknown = [
+        j.name
+        for j in actuated
+        if check_actuated_limit(elements[j.name], f"{path}: joint {j.name!r}")
+    ]
     _lock_joints(tree, {j.name for j in actuated})
 
     carries_peg = CARRIED_PEG_TIP in links and ee_link == CARRIED_PEG_TIP
@@ -197,7 +201,7 @@ def load_arm(
         text = _attach_peg(text, ee_link, peg, axis)
 
     lims = [_limits(j) for j in actuated]
-    return ArmSpec(
+    arm = ArmSpec(
         urdf_text=text,
         source_path=os.path.abspath(path),
         source_sha256=hashlib.sha256(raw).hexdigest(),
@@ -214,6 +218,35 @@ def load_arm(
         peg_radius=peg_radius,
         peg_axis=axis,
     )
+    return _with_derived_effort(arm, unknown, path) if unknown else arm
+
+
+def _with_derived_effort(arm: ArmSpec, unknown: Sequence[str], path: str) -> ArmSpec:
+    """``arm`` with the efforts of the joints ``unknown`` (published as 0 or not at all)
+    derived from the arm (:mod:`.effort`), in its URDF text too; one :class:`ArmWarning` per
+    joint names the value used."""
+    from lolgps_torch.robot.effort import EFFORT_MARGIN, derived_effort  # it imports this module
+
+    derived = dict(zip(arm.joint_names, derived_effort(arm), strict=True))
+    tree = ET.fromstring(arm.urdf_text)
+    for joint in tree.findall("joint"):
+        name = joint.get("name") or ""
+        limit = joint.find("limit")
+        if name not in unknown or limit is None:
+            continue
+        limit.set("effort", repr(derived[name]))
+        warnings.warn(
+            f"{path}: joint {name!r}: <limit> effort is not given (0); using {derived[name]:.4g} "
+            f"N m, {EFFORT_MARGIN:g} x the larger of the joint's largest gravity torque and the "
+            f"torque that accelerates its load at g / reach; set effort to its real torque "
+            f"limit (N m)",
+            ArmWarning,
+            stacklevel=3,
+        )
+    effort = tuple(
+        derived[n] if n in unknown else e for n, e in zip(arm.joint_names, arm.effort, strict=True)
+    )
+    return replace(arm, urdf_text=ET.tostring(tree, encoding="unicode"), effort=effort)
 
 
 def _parse(path: str, package_path: Sequence[str]) -> tuple[bytes, ET.Element, yourdfpy.URDF, str]:
@@ -289,15 +322,15 @@ def _actuated_joints(chain: list[yourdfpy.Joint], ee_link: str) -> list[yourdfpy
 
 
 def _limits(j: yourdfpy.Joint) -> tuple[float, float, float, float]:
-    """(lower, upper, effort, velocity) of a checked joint (:func:`check_actuated_limit`);
-    continuous joints get [-pi, pi] for placement."""
+    """(lower, upper, effort, velocity) of a checked joint (:func:`check_actuated_limit`;
+    effort 0 where it is not given); continuous joints get [-pi, pi] for placement."""
     lim = j.limit
     if j.type == "continuous" or lim.lower is None or lim.upper is None:
         lower, upper = -math.pi, math.pi
     else:
         lower, upper = float(lim.lower), float(lim.upper)
     velocity = float(lim.velocity) if lim.velocity else 10.0
-    return lower, upper, float(lim.effort), velocity
+    return lower, upper, float(lim.effort or 0.0), velocity
 
 
 def _is_gripper(j: yourdfpy.Joint) -> bool:

@@ -10,7 +10,8 @@ What is checked, each failure a :class:`LolgpsError` naming the file and the ele
 * joints: a known type; at most one of each part (``<origin>``, ``<axis>``, ``<limit>``...);
   finite numbers; a non-zero axis on moving joints; damping and friction are ``>= 0``.  The
   ``<limit>`` of a joint the method actuates is checked by :func:`check_actuated_limit`
-  (``effort > 0``, ``velocity >= 0``, ``lower < upper``); other joints are locked or fixed,
+  (``effort >= 0``, 0 or none taken as unknown, ``velocity >= 0``, ``lower < upper``); other
+  joints are locked or fixed,
   and their limits mean nothing here (published descriptions put placeholders there);
 * inertia: any ``<inertial>`` holds exactly one ``<mass>`` (finite, ``>= 0``) and one
   ``<inertia>`` with six finite entries forming a positive semi-definite matrix (a principal
@@ -108,10 +109,11 @@ def _check_limit_numbers(joint: ET.Element, kind: str, where: str) -> None:
             _number(limit, attr, where)
 
 
-def check_actuated_limit(joint: ET.Element, where: str) -> None:
-    """The ``<limit>`` of a joint the method actuates: effort and velocity present (as
-    pytorch-kinematics' parser insists), ``effort > 0`` (it bounds the commanded torque),
-    ``velocity >= 0`` and, on a revolute joint, ``lower < upper``."""
+def check_actuated_limit(joint: ET.Element, where: str) -> bool:
+    """The ``<limit>`` of a joint the method actuates: velocity present (as pytorch-kinematics'
+    parser insists), ``effort >= 0``, ``velocity >= 0`` and, on a revolute joint,
+    ``lower < upper``.  Returns whether the effort is unknown: 0 or absent (ROS-Industrial
+    publishes 0 as a placeholder; the loader derives a limit, :mod:`.effort`)."""
     kind = joint.get("type")
     limit = _optional_child(joint, "limit", where)
     if limit is None:
@@ -121,19 +123,22 @@ def check_actuated_limit(joint: ET.Element, where: str) -> None:
                 f"velocity=...>; add one"
             )
         raise LolgpsError(f"{where}: <limit> missing; add <limit effort=... velocity=...>")
-    effort, velocity = (_required_numbers(limit, a, where, 1)[0] for a in ("effort", "velocity"))
+    effort = _number(limit, "effort", where) or 0.0
+    velocity = _required_numbers(limit, "velocity", where, 1)[0]
     lower, upper = (_number(limit, attr, where) for attr in ("lower", "upper"))
     if kind == "revolute" and lower is not None and upper is not None and not lower < upper:
         raise LolgpsError(
             f"{where}: <limit> lower {lower} is not below upper {upper}; widen the range, or "
             f"pick another --ee-link so that this joint is locked"
         )
-    if effort <= 0:
+    if effort < 0:
         raise LolgpsError(
-            f"{where}: <limit> effort must be positive, got {effort}; set the joint's torque limit"
+            f"{where}: <limit> effort must not be negative, got {effort}; set the joint's "
+            f"torque limit (or 0 to have one derived from the arm)"
         )
     if velocity < 0:
         raise LolgpsError(f"{where}: <limit> velocity must not be negative, got {velocity}")
+    return effort == 0
 
 
 def _named(robot: ET.Element, tag: str, path: str) -> dict[str, ET.Element]:
