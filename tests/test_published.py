@@ -4,7 +4,7 @@ PyBullet, places the default stream and runs an iteration, or stops with one err
 naming what to change; and the loader's handling of what they carry (other tools' undeclared
 XML prefixes, unnamed visual materials, meshes PyBullet cannot read, robot fingers whose
 every joint is named ``finger_...``, tool frames beside gripper bases, torque limits given as
-0), fuzzed; the simulated arm without its visual meshes."""
+0), fuzzed; the simulated arm without its visual shapes."""
 
 from __future__ import annotations
 
@@ -308,7 +308,7 @@ def test_a_bad_torque_limit_gets_one_error_line(tmp_path: Path, effort: str, mes
 
 def test_the_simulated_arm_has_no_visual_meshes_and_moves_as_with_them() -> None:
     """PyBullet reads every mesh file it is given (seconds for large ones): the learning
-    worlds load the arm without its visual meshes, the pictures' world (``meshes=True``) with
+    worlds load the arm without its visual shapes, the pictures' world (``meshes=True``) with
     them, and both simulate bit for bit alike (pybullet_data's Panda, meshes for visuals)."""
     arm, _ = _load_quietly(Path(DATA, "franka_panda/panda.urdf"))
     mid = (torch.tensor(arm.lower) + torch.tensor(arm.upper)).numpy() / 2

@@ -6,9 +6,10 @@ is the gravity-compensation torque (inverse dynamics at zero velocity and accele
 evaluated at the start of the control step, as a torque-controlled arm's own gravity
 compensation would.  Only the peg collides with the table and the hole.
 
-The arm's visual meshes are left out of the description PyBullet loads unless pictures are
-taken (:class:`PegWorld`'s ``meshes``): PyBullet reads every mesh file it is given (9 s for a
-description with 135 MB of meshes), and nothing it simulates depends on visual shapes.
+The arm's visual shapes are not loaded unless pictures are taken (:class:`PegWorld`'s
+``meshes``; ``URDF_IGNORE_VISUAL_SHAPES`` otherwise): PyBullet reads every visual mesh file
+it is given (seconds for a description with 135 MB of meshes, docs/PERFORMANCE.md), and
+nothing it simulates depends on visual shapes.
 
 The hole is a square funnel cut in a table: four guide plates tilted so the clearance per side
 narrows from ``clearance_mouth`` at the table surface to ``clearance_bottom`` at the floor,
@@ -20,7 +21,6 @@ from __future__ import annotations
 import math
 import os
 import tempfile
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,24 +93,13 @@ class WorldConfig:
             )
 
 
-def without_visual_meshes(urdf_text: str) -> str:
-    """The URDF text without its ``<visual>`` elements whose geometry is a mesh (primitive
-    visuals and every collision shape are kept)."""
-    robot = ET.fromstring(urdf_text)
-    for link in robot.findall("link"):
-        for visual in link.findall("visual"):
-            if visual.find("geometry/mesh") is not None:
-                link.remove(visual)
-    return ET.tostring(robot, encoding="unicode")
-
-
 class PegWorld:
     """One PyBullet client with the arm, the table and the hole.  Not picklable: build it in
     the process that uses it.
 
     :param arm: the arm. :param config: simulation and hole geometry.
     :param nominal_mouth: the hole's mouth at offset zero (world, m).
-    :param meshes: load the arm's visual meshes (only pictures need them).
+    :param meshes: load the arm's visual shapes, meshes included (only pictures need them).
     """
 
     def __init__(
@@ -132,11 +121,10 @@ class PegWorld:
         )
         pb.setGravity(0, 0, -config.gravity, physicsClientId=c)
         with tempfile.NamedTemporaryFile("w", suffix=".urdf", delete=False) as fh:
-            fh.write(arm.urdf_text if meshes else without_visual_meshes(arm.urdf_text))
+            fh.write(arm.urdf_text)
         try:
-            self.body = pb.loadURDF(
-                fh.name, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c
-            )
+            flags = pb.URDF_USE_INERTIA_FROM_FILE | (0 if meshes else pb.URDF_IGNORE_VISUAL_SHAPES)
+            self.body = pb.loadURDF(fh.name, useFixedBase=True, flags=flags, physicsClientId=c)
         except pb.error as exc:
             raise LolgpsError(f"PyBullet could not load {arm.source_path}: {exc}") from None
         finally:
