@@ -16,10 +16,11 @@ own rigid-body model (:mod:`.rigid_body`), at standard gravity:
   ``g``.  The term ``I_j g / reach`` is a floor for joints that hold little or no gravity
   torque (a wrist roll joint's ``G_j`` is ~0): each can still accelerate what it carries as
   fast as gravity would the outstretched arm;
-* ``EFFORT_MARGIN = 3``: the ratio ``effort / G`` at the shoulder (the most loaded joint) of
-  the published arms that give their limits is 1.6 to 18.5, median 2.8 (docs/RESULTS.md
-  section 10.1), and ``3 g / reach`` is within the range of their ``effort / I`` (14 to 349
-  rad/s^2 at the least).
+* ``EFFORT_MARGIN = 3``: among the published arms that give their limits, ``effort / G`` at
+  the shoulder (the most loaded joint) is 1.6 to 2.9 on the Panda, xArm 6, UR3e and UR5e and
+  5.4 to 18.5 on the KUKA iiwa and the Trossen arms; the smallest ``effort / I`` of each is 14
+  to 349 rad/s^2, and ``3 g / reach`` on them 22 to 38 (docs/RESULTS.md section 10.1).  A
+  margin of 3 leaves twice the worst gravity load for motion, between the two groups.
 
 Both terms scale with the arm (torques as mass times length times g), so no arm needs a
 constant of its own.
