@@ -9,8 +9,8 @@ with p_bar = p_pre (the linearised global policy) when there is one, else the pr
 p_cur (the classic trust region).  epsilon = kl_step * step_mult * T, and step_mult adapts
 from the predicted against the actual improvement of the expected cost.
 
-A step whose samples cost more on average than those of the last accepted iteration is
-rejected: p_cur returns to the controller that drew the accepted samples and the C-step is
+A step whose samples cost more on average than those of the last accepted iteration, by more
+than ``reject_z`` standard errors of the difference of the two means, is rejected: p_cur returns to the controller that drew the accepted samples and the C-step is
 taken again from the accepted fit with the step size just shrunk (a line search on epsilon).
 A step taken at the smallest multiplier is accepted: its samples re-measure the cost.
 """
@@ -54,6 +54,10 @@ class LocalConfig:
     :param init_omega: natural frequency (rad/s) of the soft PD hold of the start pose;
         gains ``kp = m omega^2``, ``kd = 2 m omega`` with m each joint's effective inertia.
     :param noise_smoothing: width (steps) of the Gaussian filter on the exploration noise.
+    :param reject_z: a step is rejected when its samples' mean total cost exceeds the last
+        accepted iteration's by more than ``reject_z * sqrt(s_new^2 / N + s_acc^2 / N)`` (s the
+        sample standard deviations of the total costs): only an increase that the N samples
+        can tell from noise undoes a step (0: any increase does).
     :param cstep: the C-step's settings. :param dynamics: the dynamics fit's settings.
     """
 
@@ -61,6 +65,7 @@ class LocalConfig:
     init_variance: float = 4.0
     init_omega: float = 2.0
     noise_smoothing: float = 2.0
+    reject_z: float = 2.0
     cstep: CStepConfig = field(default_factory=CStepConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
 
@@ -72,6 +77,7 @@ class LocalConfig:
                 "init_variance": 0.0 < self.init_variance < math.inf,
                 "init_omega": 0.0 <= self.init_omega < math.inf,
                 "noise_smoothing": 0.0 <= self.noise_smoothing < math.inf,
+                "reject_z": 0.0 <= self.reject_z < math.inf,
             },
         )
 
@@ -87,13 +93,14 @@ class Fit(NamedTuple):
 
 class Accepted(NamedTuple):
     """The last accepted iteration: its fit, the Laplace estimate of its controller's
-    expected cost under that fit, the p_cur that drew its samples, their mean total cost and
-    their states ``[N, T, dX]`` (p_pre is linearised around them)."""
+    expected cost under that fit, the p_cur that drew its samples, their mean total cost and its
+    squared standard error, and their states ``[N, T, dX]`` (p_pre is linearised around them)."""
 
     fit: Fit
     expected: float
     p_cur: LinearGaussian
     cost: float
+    cost_se2: float
     x: Tensor
 
 
@@ -141,7 +148,8 @@ class LocalLearner:
         """Dynamics and cost expansion around the new samples; adapts the step size.
 
         Returns the fit for the C-step: the new one, or, when the samples' mean cost exceeds
-        the last accepted iteration's, that iteration's fit, with p_cur back at the
+        the last accepted iteration's by more than the noise allows (``reject_z``), that
+        iteration's fit, with p_cur back at the
         controller that drew its samples (the step is rejected and retried smaller). A step
         taken at the smallest multiplier is accepted whatever its cost: p_cur is then close
         to the accepted controller, and its samples re-measure that controller's cost (a
@@ -150,7 +158,8 @@ class LocalLearner:
         expansion = self.task.cost.expand(samples.x, samples.u, self.targets)
         fit = Fit(p_act, dynamics, to_quadratic(expansion, samples.x, samples.u))
         expected = float(laplace_cost(p_act, dynamics, fit.cost))
-        cost = float(samples.cost.sum(1).mean())
+        totals = samples.cost.sum(1)
+        cost, cost_se2 = float(totals.mean()), float(totals.var() / totals.numel())
         last = self.accepted
         if last is not None:
             smallest = self.step_mult <= self.config.cstep.step_mult_min  # p_cur's step
@@ -158,10 +167,11 @@ class LocalLearner:
             self.step_mult = adapt_step_mult(
                 self.step_mult, last.expected, predicted, expected, self.config.cstep
             )
-            if cost > last.cost and not smallest:
+            margin = self.config.reject_z * math.sqrt(cost_se2 + last.cost_se2)
+            if cost > last.cost + margin and not smallest:
                 self.p_cur = last.p_cur
                 return last.fit
-        self.accepted = Accepted(fit, expected, self.p_cur, cost, samples.x)
+        self.accepted = Accepted(fit, expected, self.p_cur, cost, cost_se2, samples.x)
         return fit
 
     def improve(self, fit: Fit, p_bar: LinearGaussian) -> tuple[float, float, float]:
