@@ -5,7 +5,15 @@ from __future__ import annotations
 import torch
 
 from lolgps_torch.controllers import trajectory_kl
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+from lolgps_torch.lolgps.local import (
+    Accepted,
+    Fit,
+    LocalConfig,
+    LocalLearner,
+    iterate,
+    mean_and_se2,
+    step_rejected,
+)
 from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.types import LinearGaussian
 
@@ -42,3 +50,23 @@ def test_a_step_that_raises_the_cost_is_retried_smaller_from_the_accepted_contro
     finally:
         task.close()
     assert torch.isfinite(learner.p_cur.k).all()
+
+
+def test_a_step_is_undone_only_by_a_cost_increase_beyond_noise_or_by_a_diverged_rollout() -> None:
+    """The rejection rule on total costs: five samples of nearly the same controller, one of
+    them stuck on the rim (as 5 samples give near convergence), keep the step; a clear increase
+    undoes it; so does one rollout that costs more than the hold of the start pose, even when
+    the other four make the mean increase look like noise."""
+    accepted = torch.tensor([2.0, 2.5, 1.5, 3.0, 2.5], dtype=torch.float64)
+    cost, se2 = mean_and_se2(accepted)
+    fit = Fit(*(None,) * 3)  # type: ignore[arg-type]  # the rule reads only the costs
+    last = Accepted(fit, 0.0, None, cost, se2, torch.zeros(0))  # type: ignore[arg-type]
+    start = 220.0
+    one_stuck = torch.tensor([2.0, 3.0, 2.5, 40.0, 1.5], dtype=torch.float64)
+    worse = torch.tensor([6.0, 7.0, 6.5, 8.0, 7.5], dtype=torch.float64)
+    one_diverged = torch.tensor([1.0, 1.5, 1.0, 1.2, 900.0], dtype=torch.float64)
+    assert not step_rejected(one_stuck, last, start, z=2.0)
+    assert step_rejected(one_stuck, last, start, z=0.0)  # any increase, as before
+    assert step_rejected(worse, last, start, z=2.0)
+    assert float(one_diverged.mean()) - cost < 2.0 * (mean_and_se2(one_diverged)[1] + se2) ** 0.5
+    assert step_rejected(one_diverged, last, start, z=2.0)

@@ -58,7 +58,9 @@ class ConditionSummary:
     :param iterations: iterations taken (rollouts = iterations x samples).
     :param first_success_iteration: the first iteration with a successful sample, if any.
     :param successful_samples: rollouts in the condition's D_g.
-    :param local_final_distance: p_cur's noiseless final distance (m) at the end.
+    :param local_final_distance: the noiseless final distance (m) of the local controller the
+        condition ends with, the one that labels D_g (the final p_cur, unless its rollout
+        misses; then the p_cur of the last iteration with successful samples).
     :param labels_from_iteration: the iteration whose p_cur labels D_g.
     :param policy_final_distance_after: the global policy's noiseless final distance (m)
         right after the condition's S-step; ``..._end`` after the whole stream (set last).

@@ -4,11 +4,10 @@ training positions, drawn by PyBullet's CPU renderer (``ER_TINY_RENDERER``, head
 The rollouts run once, through the task's own sampler: the policy's as one batch, each local
 controller's ``u_t = K_t x_t + k_t`` alone, as the stream measures them, so a clip's final
 distance is the one ``summary.json`` records (``policy_final_distance_end`` for the final
-policy; ``local_final_distance`` for the replay's p_cur, which labelled D_g, when it is the
-final iteration's: ``labels_from_iteration == iterations``). A separate display :class:`Scene` (the run's arm
-in its own client, with a coloured copy of the hole) is then posed from the recorded joint
-angles ``q_t`` of every ``every``-th state and photographed by a camera fixed per clip. No
-physics runs in the display.
+policy; ``local_final_distance`` for the replay's p_cur, which labelled D_g). A separate
+display :class:`Scene` (the run's arm in its own client, with a coloured copy of the hole) is
+then posed from the recorded joint angles ``q_t`` of every ``every``-th state and photographed
+by a camera fixed per clip. No physics runs in the display.
 
 The arm is drawn from its own visual shapes (meshes or primitives). PyBullet draws a link
 without one from its collision shapes; a link with neither gets a capsule from its parent's

@@ -9,10 +9,13 @@ with p_bar = p_pre (the linearised global policy) when there is one, else the pr
 p_cur (the classic trust region).  epsilon = kl_step * step_mult * T, and step_mult adapts
 from the predicted against the actual improvement of the expected cost.
 
-A step whose samples cost more on average than those of the last accepted iteration is
-rejected: p_cur returns to the controller that drew the accepted samples and the C-step is
-taken again from the accepted fit with the step size just shrunk (a line search on epsilon).
-A step taken at the smallest multiplier is accepted: its samples re-measure the cost.
+A step is rejected when its samples cost more on average than those of the last accepted
+iteration, by more than ``reject_z`` standard errors of the difference of the two means, or
+when one of them costs more than the first iteration's samples did on average (a rollout worse
+than the hold of the start pose has diverged): p_cur returns to the controller that drew the
+accepted samples and the C-step is taken again from the accepted fit with the step size just
+shrunk (a line search on epsilon). A step taken at the smallest multiplier is accepted: its
+samples re-measure the cost.
 """
 
 from __future__ import annotations
@@ -54,6 +57,10 @@ class LocalConfig:
     :param init_omega: natural frequency (rad/s) of the soft PD hold of the start pose;
         gains ``kp = m omega^2``, ``kd = 2 m omega`` with m each joint's effective inertia.
     :param noise_smoothing: width (steps) of the Gaussian filter on the exploration noise.
+    :param reject_z: a step is rejected when its samples' mean total cost exceeds the last
+        accepted iteration's by more than ``reject_z * sqrt(s_new^2 / N + s_acc^2 / N)`` (s the
+        sample standard deviations of the total costs): only an increase that the N samples
+        can tell from noise undoes a step (0: any increase does).
     :param cstep: the C-step's settings. :param dynamics: the dynamics fit's settings.
     """
 
@@ -61,6 +68,7 @@ class LocalConfig:
     init_variance: float = 4.0
     init_omega: float = 2.0
     noise_smoothing: float = 2.0
+    reject_z: float = 2.0
     cstep: CStepConfig = field(default_factory=CStepConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
 
@@ -72,6 +80,7 @@ class LocalConfig:
                 "init_variance": 0.0 < self.init_variance < math.inf,
                 "init_omega": 0.0 <= self.init_omega < math.inf,
                 "noise_smoothing": 0.0 <= self.noise_smoothing < math.inf,
+                "reject_z": 0.0 <= self.reject_z < math.inf,
             },
         )
 
@@ -87,13 +96,14 @@ class Fit(NamedTuple):
 
 class Accepted(NamedTuple):
     """The last accepted iteration: its fit, the Laplace estimate of its controller's
-    expected cost under that fit, the p_cur that drew its samples, their mean total cost and
-    their states ``[N, T, dX]`` (p_pre is linearised around them)."""
+    expected cost under that fit, the p_cur that drew its samples, their mean total cost and its
+    squared standard error, and their states ``[N, T, dX]`` (p_pre is linearised around them)."""
 
     fit: Fit
     expected: float
     p_cur: LinearGaussian
     cost: float
+    cost_se2: float
     x: Tensor
 
 
@@ -113,6 +123,25 @@ def initial_controller(task: PegTask, config: LocalConfig) -> LinearGaussian:
     )
 
 
+def mean_and_se2(totals: Tensor) -> tuple[float, float]:
+    """The mean of the samples' total costs ``[N]`` and its squared standard error
+    ``s^2 / N`` (s^2 the unbiased sample variance)."""
+    return float(totals.mean()), float(totals.var() / totals.numel())
+
+
+def step_rejected(totals: Tensor, last: Accepted, start_cost: float, z: float) -> bool:
+    """Whether samples with total costs ``totals [N]`` undo the step that drew them:
+
+        mean(totals) - J_acc > z sqrt(s^2 / N + s_acc^2 / N)   or   max(totals) > J_start
+
+    with J_acc, s_acc^2 / N the accepted samples' mean and squared standard error and J_start
+    the first iteration's mean (the hold of the start pose): an increase the samples' noise
+    cannot explain, or one rollout worse than holding still, which only a diverging
+    controller gives."""
+    cost, se2 = mean_and_se2(totals)
+    return cost - last.cost > z * math.sqrt(se2 + last.cost_se2) or float(totals.max()) > start_cost
+
+
 class LocalLearner:
     """p_cur, its dynamics model and its step size, for one condition (a hole offset)."""
 
@@ -126,6 +155,7 @@ class LocalLearner:
         self.fitter = DynamicsFitter(config.dynamics, model)
         self.step_mult = config.cstep.step_mult_init
         self.accepted: Accepted | None = None
+        self.start_cost = math.inf  # the first iteration's mean total cost
         self.targets = task.targets([offset])[0]
 
     def sample(self, p_act: LinearGaussian) -> Trajectories:
@@ -140,9 +170,9 @@ class LocalLearner:
     def fit(self, p_act: LinearGaussian, samples: Trajectories) -> Fit:
         """Dynamics and cost expansion around the new samples; adapts the step size.
 
-        Returns the fit for the C-step: the new one, or, when the samples' mean cost exceeds
-        the last accepted iteration's, that iteration's fit, with p_cur back at the
-        controller that drew its samples (the step is rejected and retried smaller). A step
+        Returns the fit for the C-step: the new one, or, when :func:`step_rejected`, the last
+        accepted iteration's fit, with p_cur back at the controller that drew its samples (the
+        step is retried smaller). A step
         taken at the smallest multiplier is accepted whatever its cost: p_cur is then close
         to the accepted controller, and its samples re-measure that controller's cost (a
         lucky low draw of the accepted cost would otherwise reject every later step)."""
@@ -150,7 +180,7 @@ class LocalLearner:
         expansion = self.task.cost.expand(samples.x, samples.u, self.targets)
         fit = Fit(p_act, dynamics, to_quadratic(expansion, samples.x, samples.u))
         expected = float(laplace_cost(p_act, dynamics, fit.cost))
-        cost = float(samples.cost.sum(1).mean())
+        totals = samples.cost.sum(1)
         last = self.accepted
         if last is not None:
             smallest = self.step_mult <= self.config.cstep.step_mult_min  # p_cur's step
@@ -158,10 +188,13 @@ class LocalLearner:
             self.step_mult = adapt_step_mult(
                 self.step_mult, last.expected, predicted, expected, self.config.cstep
             )
-            if cost > last.cost and not smallest:
+            if not smallest and step_rejected(totals, last, self.start_cost, self.config.reject_z):
                 self.p_cur = last.p_cur
                 return last.fit
-        self.accepted = Accepted(fit, expected, self.p_cur, cost, samples.x)
+        else:
+            self.start_cost = float(totals.mean())
+        cost, cost_se2 = mean_and_se2(totals)
+        self.accepted = Accepted(fit, expected, self.p_cur, cost, cost_se2, samples.x)
         return fit
 
     def improve(self, fit: Fit, p_bar: LinearGaussian) -> tuple[float, float, float]:

@@ -197,10 +197,13 @@ class StreamLearner:
         outcome, probe = self.transfer(learner, linearize, index)
         if outcome is None:  # learn from the hold controller, after the transfer's iterations
             outcome = self.learn_locally(learner, linearize, index, probe)
-        # D_g is labelled here: by the final p_cur, unless its own rollout misses
+        # D_g is labelled here: by the final p_cur, unless its own rollout misses; the
+        # condition's local controller is the one that labels it
         failure, final = outcome.failure, outcome.final
         local = float("inf") if failure else self.noiseless(final.p_cur, offset)
         labels = label_source(final, local < self.threshold, outcome.found.latest)
+        if labels is not final:
+            local = self.noiseless(labels.p_cur, offset)
         data = label(self.task, outcome.found.kept, labels)
         t0 = time.perf_counter()
         offsets = [*(self.replay.offsets() if self.config.replay else []), offset]
