@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from lolgps_torch.cli import add_task_arguments, run, task_config
+from lolgps_torch.robot.placement import reach
 from lolgps_torch.task import PegTask
 
 
@@ -45,7 +46,9 @@ def main() -> None:
     for block, (start, stop) in lay.as_dict().items():
         print(f"  x[{start}:{stop}]  {block}")
     mouth = task.geometry.nominal_mouth
-    print(f"\nnominal hole  mouth at ({mouth[0]:.3f}, {mouth[1]:.3f}, {mouth[2]:.3f}) m")
+    _, radius = reach(task.arm, task.kinematics)
+    print(f"\nreach         {radius:.3f} m from the shoulder to the peg tip")
+    print(f"nominal hole  mouth at ({mouth[0]:.3f}, {mouth[1]:.3f}, {mouth[2]:.3f}) m")
 
     world = task.sampler.worlds[0]
     rng = np.random.default_rng(0)
