@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from lolgps_torch.data.run_folder import RunFolder, read_json
+from lolgps_torch.lolgps.run import stream_config
 from lolgps_torch.sweep.cells import CELL_FILE
 from lolgps_torch.sweep.grid import Cell, Outcome, Sweep
 
@@ -55,7 +56,7 @@ def cell_metrics(folder: Path) -> dict[str, float | None] | None:
     if not run.summary_path.is_file():
         return None
     entries = run.read_summary()["conditions"]
-    samples = int(run.read_config()["stream"]["local"]["samples"])
+    samples = stream_config(run, run.read_config()).local.samples
     row: dict[str, float | None] = {key: None for key, _, _ in METRICS}
     if entries:
         row["train_success"] = statistics.fmean(bool(e["policy_success_end"]) for e in entries)

@@ -25,9 +25,9 @@ import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
-from lolgps_torch.data.run import load_run
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
+from lolgps_torch.lolgps.run import load_run
 from lolgps_torch.lolgps.stream import policy_distances
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.sstep import _row_constants, _sgd_rows, set_statistics
@@ -79,7 +79,7 @@ def main() -> None:
             replay.append_condition(
                 r.condition, r.offset, r.samples, r.iterations, r.p_cur, r.p_pre
             )
-        distiller = Distiller(task, config, stream["augment"], stream["augment_scale"], replay)
+        distiller = Distiller(task, config, stream.augment, stream.augment_scale, replay)
         gen = torch.Generator().manual_seed(0)
         t_read, stored = best_seconds(
             lambda: [replay.read_condition(i).samples.to_batch() for i in replay.conditions()],
@@ -104,9 +104,7 @@ def main() -> None:
         ):  # a fresh Distiller, so the call reads the replay as a stream's first does
             policy.load_state_dict(state)
             policy.trained = True
-            Distiller(task, config, stream["augment"], stream["augment_scale"], replay)(
-                policy, [item], 0
-            )
+            Distiller(task, config, stream.augment, stream.augment_scale, replay)(policy, [item], 0)
 
         t_all, _ = best_seconds(call, args.repeats)
         offsets = [r.offset for r in loaded.records[: k + 1]]
