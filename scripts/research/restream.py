@@ -21,10 +21,10 @@ import argparse
 import tempfile
 import time
 from dataclasses import replace
-from pathlib import Path
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
 from lolgps_torch.lolgps.distillation import CheckedSStep, Distiller, Labelled, Labels
@@ -80,7 +80,7 @@ def main() -> None:
     total = 0.0
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            replay = ReplayBuffer(Path(tmp) / "replay.h5")
+            replay = ReplayBuffer(RunFolder(tmp).replay_path)
             distill = Distiller(task, config, stream.augment, stream.augment_scale, replay)
             sstep = CheckedSStep(
                 distill, lambda p, o: policy_distances(task, p, o), threshold, args.repairs

@@ -18,13 +18,13 @@ import argparse
 import tempfile
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
 from lolgps_torch.lolgps.run import load_run
@@ -74,7 +74,7 @@ def main() -> None:
     labels = Labels(record.p_cur, record.p_pre, record.iterations)
     item = Labelled(record.offset, record.samples, labels)
     with tempfile.TemporaryDirectory() as tmp:
-        replay = ReplayBuffer(Path(tmp) / "replay.h5")
+        replay = ReplayBuffer(RunFolder(tmp).replay_path)
         for r in loaded.records[:k]:
             replay.append_condition(
                 r.condition, r.offset, r.samples, r.iterations, r.p_cur, r.p_pre
