@@ -68,15 +68,17 @@ def test_xarm_learns_the_nominal_hole(tmp_path: Path) -> None:
 
 def test_xarm_policy_keeps_both_positions_of_a_small_stream(tmp_path: Path) -> None:
     """The global policy on another arm, CI-sized: the xArm6 learns two holes 0.057 m apart
-    (two success phases each) and its policy inserts the peg at each right after that hole's
-    S-step and at the end. Before the S-step's output scaling and closed-loop check (commit
-    bb8ee72) the policy after the first S-step ended 0.0605 m from the first hole, a miss."""
+    (two success phases each, S-steps of 300 Adam steps, not 1000) and its policy inserts the
+    peg at each right after that hole's S-step and at the end. Before the S-step's output
+    scaling and closed-loop check (commit bb8ee72) the policy after the first S-step ended
+    0.0605 m from the first hole, a miss."""
     xarm = os.path.join(pybullet_data.getDataPath(), "xarm/xarm6_robot.urdf")
     conditions = tmp_path / "conditions.json"
     conditions.write_text("[[-0.02, -0.02], [0.02, 0.02]]")
     out = tmp_path / "run"
     _run(tmp_path, "run_stream.py", "--urdf", xarm, "--conditions", str(conditions),
-         "--success-phases", "2", "--max-iterations", "10", "--out", str(out))  # fmt: skip
+         "--success-phases", "2", "--max-iterations", "10", "--distill-steps", "300",
+         "--out", str(out))  # fmt: skip
     entries = json.loads((out / "summary.json").read_text())["conditions"]
     assert [e["policy_success_after"] for e in entries] == [True, True]
     assert [e["policy_success_end"] for e in entries] == [True, True]
