@@ -22,7 +22,6 @@ import time
 from pathlib import Path
 
 from lolgps_torch.cli import ConfigFlags, run
-from lolgps_torch.data.run import load_run
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.render import (
     RenderConfig,
@@ -31,6 +30,7 @@ from lolgps_torch.evaluation.render import (
     parse_conditions,
     render_run,
 )
+from lolgps_torch.lolgps.run import load_run
 
 FLAGS = ConfigFlags(RenderConfig())
 

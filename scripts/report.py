@@ -17,7 +17,6 @@ import importlib.util
 from pathlib import Path
 
 from lolgps_torch.cli import run
-from lolgps_torch.data.run import load_run
 from lolgps_torch.data.run_folder import RunFolder, write_json
 from lolgps_torch.evaluation.render import RenderConfig, render_run
 from lolgps_torch.evaluation.report import (
@@ -28,6 +27,7 @@ from lolgps_torch.evaluation.report import (
     write_report,
 )
 from lolgps_torch.evaluation.retention import plot_retention, retention
+from lolgps_torch.lolgps.run import load_run
 
 
 def make_missing(path: Path) -> None:

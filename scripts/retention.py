@@ -15,9 +15,9 @@ from __future__ import annotations
 import argparse
 
 from lolgps_torch.cli import run
-from lolgps_torch.data.run import load_run
 from lolgps_torch.data.run_folder import write_json
 from lolgps_torch.evaluation.retention import forgotten, plot_retention, retention
+from lolgps_torch.lolgps.run import load_run
 
 
 def main() -> None:

@@ -18,7 +18,6 @@ from PIL import Image
 
 from lolgps_torch.data.checkpoint import save_policy
 from lolgps_torch.data.replay import ReplayBuffer
-from lolgps_torch.data.run import LoadedRun, load_run
 from lolgps_torch.data.run_folder import RunFolder, portable_urdf, task_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.render import (
@@ -32,6 +31,7 @@ from lolgps_torch.evaluation.render import (
     record_clips,
     render_clips,
 )
+from lolgps_torch.lolgps.run import LoadedRun, load_run
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.robot.arm import PegConfig, load_arm

@@ -4,7 +4,7 @@ comparison, and policy checkpoints."""
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import pytest
@@ -19,6 +19,9 @@ from lolgps_torch.data.run_folder import (
     task_json,
 )
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.lolgps import StreamConfig
+from lolgps_torch.lolgps.local import LocalConfig
+from lolgps_torch.lolgps.run import read_run
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
 from lolgps_torch.task import TaskConfig
 
@@ -132,21 +135,63 @@ def test_config_differences_name_every_differing_field() -> None:
     assert config_differences(saved, saved) == []
 
 
-def test_read_run_rejects_stages_beyond_the_conditions(tmp_path: Path) -> None:
+def _run(tmp_path: Path, **changes: object) -> RunFolder:
+    """A run folder at ``tmp_path / "run"`` whose config.json is a one-condition run's,
+    with ``changes`` to its entries."""
     text = portable_urdf(KUKA)
     config = {
         "task": task_json(TaskConfig(urdf=KUKA), text),
         "conditions": [[0.0, 0.0]],
-        "stages": [{"name": "s", "last_condition": 1}],
+        "stages": [{"name": "s", "last_condition": 0}],
         "method": "lolgps",
         "seed": 0,
+        **changes,
     }
     folder = RunFolder(tmp_path / "run")
     folder.start(config, text)
+    return folder
+
+
+def test_read_run_rejects_stages_beyond_the_conditions(tmp_path: Path) -> None:
+    folder = _run(tmp_path, stages=[{"name": "s", "last_condition": 1}])
     with pytest.raises(LolgpsError, match="stages must end at increasing conditions below 1"):
-        folder.read_run()
+        read_run(folder)
     with pytest.raises(LolgpsError, match="run folder not found"):
-        RunFolder(tmp_path / "absent").read_run()
+        read_run(RunFolder(tmp_path / "absent"))
+
+
+def test_stream_config_round_trips_through_config_json(tmp_path: Path) -> None:
+    policy = PolicyConfig(hidden_sizes=(8, 6), pre_weight=0.5)
+    stream = StreamConfig(alpha=0.2, transfer="policy", local=LocalConfig(samples=3), policy=policy)
+    assert read_run(_run(tmp_path, stream=asdict(stream))).stream == stream
+
+
+def test_stream_settings_a_run_did_not_save_take_their_defaults(tmp_path: Path) -> None:
+    saved = asdict(StreamConfig(seed=3))
+    del saved["repairs"], saved["local"]["samples"]
+    assert read_run(_run(tmp_path, stream=saved)).stream == replace(StreamConfig(), seed=3)
+    assert read_run(_run(tmp_path / "old")).stream == StreamConfig()
+
+
+@pytest.mark.parametrize(
+    ("stream", "message"),
+    [
+        (
+            {"alpha_schedul": "dynamic"},
+            r"stream: StreamConfig: unknown settings \['alpha_schedul'\]",
+        ),
+        ({"local": {"sample": 3}}, r"stream: LocalConfig: unknown settings \['sample'\]"),
+        ({"alpha": 2.0}, r"stream: StreamConfig.alpha = 2.0: out of range"),
+        ({"transfer": "all"}, r"stream: transfer 'all': one of"),
+        ({"alpha": "high"}, r"stream: '<=' not supported"),
+        ([1, 2], r"stream: not a JSON object"),
+    ],
+)
+def test_a_bad_stream_setting_is_one_error_naming_config_json(
+    tmp_path: Path, stream: object, message: str
+) -> None:
+    with pytest.raises(LolgpsError, match=f"corrupt .*config.json: {message}"):
+        read_run(_run(tmp_path, stream=stream))
 
 
 def test_metrics_read_back_without_a_torn_last_line(tmp_path: Path) -> None:

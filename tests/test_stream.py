@@ -6,6 +6,7 @@ import json
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -14,7 +15,7 @@ import numpy as np
 import pybullet_data
 import pytest
 import torch
-from conftest import ci_stream_command
+from conftest import ScriptRun, ci_stream_command, finish_script, start_script
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
@@ -22,11 +23,6 @@ from lolgps_torch.lolgps.distillation import Checked, CheckedSStep
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
 
 SCRIPT = [sys.executable, "scripts/run_stream.py", "--urdf", "robots/kuka_peg.urdf"]
-
-
-def _stream(tmp: Path, out: str, *extra: str) -> subprocess.CompletedProcess[str]:
-    cmd = [*ci_stream_command(tmp, tmp / out), *extra]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")
@@ -58,11 +54,12 @@ def test_ci_stream_distils_and_replays_both_conditions(small_run: Path) -> None:
     assert config["conditions"] == [[0.0, 0.0], [0.01, -0.01]]
 
 
-def test_same_seed_gives_same_summary(small_run: Path) -> None:
-    proc = _stream(small_run, "again")
-    assert proc.returncode == 0, proc.stderr[-2000:]
+def test_same_seed_gives_same_summary(small_run: Path, tmp_path: Path) -> None:
+    log = tmp_path / "again.log"
+    process = start_script(ci_stream_command(tmp_path, tmp_path / "again"), log)
+    assert finish_script(process, log) == 0, log.read_text()[-2000:]
     first = (small_run / "run" / "summary.json").read_text()
-    second = (small_run / "again" / "summary.json").read_text()
+    second = (tmp_path / "again" / "summary.json").read_text()
     assert first == second
 
 
@@ -71,11 +68,13 @@ def _group_bytes(path: Path, group: str) -> dict[str, bytes]:
         return {name: np.asarray(ds).tobytes() for name, ds in f[group].items()}
 
 
-def test_existing_run_without_resume_is_refused(small_run: Path) -> None:
-    proc = _stream(small_run, "run")
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines()[-1].startswith("error: ")
-    assert "--resume" in proc.stderr
+def test_existing_run_without_resume_is_refused(
+    small_run: Path, tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    result = run_script(*ci_stream_command(tmp_path, small_run / "run")[1:])
+    assert result.code == 2
+    assert result.err.strip().splitlines()[-1].startswith("error: ")
+    assert "--resume" in result.err
 
 
 @pytest.mark.slow
@@ -94,11 +93,13 @@ def test_redistill_refits_and_tests_a_finished_run(small_run: Path, tmp_path: Pa
     assert bad.returncode == 2 and bad.stderr.strip().startswith("error: ")
 
 
-def test_trace_policy_prints_rollout_and_fit_per_condition(small_run: Path) -> None:
-    cmd = [sys.executable, "scripts/research/trace_policy.py", "--run", str(small_run / "run")]
-    proc = subprocess.run([*cmd, "--steps", "0", "5"], capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    lines = proc.stdout.strip().splitlines()
+def test_trace_policy_prints_rollout_and_fit_per_condition(
+    small_run: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    cmd = ["scripts/research/trace_policy.py", "--run", str(small_run / "run")]
+    result = run_script(*cmd, "--steps", "0", "5")
+    assert result.code == 0, result.err[-2000:]
+    lines = result.out.strip().splitlines()
     assert lines[0] == "policy after condition 1; columns: steps [0, 5]"
     assert [line.split()[1] for line in lines[1::2]] == ["0", "1"]
     # the rollout starts at the start pose, whose tip error at step 0 is the same for both
@@ -107,11 +108,8 @@ def test_trace_policy_prints_rollout_and_fit_per_condition(small_run: Path) -> N
     x1, y1 = (float(v) for v in lines[3].split("mm (")[1].split(",")[:2])
     assert (x0 - x1, y0 - y1) == pytest.approx((10.0, -10.0), abs=1.0)
     assert all(line.strip().startswith("D_g fit: ") for line in lines[2::2])
-    bad = subprocess.run([*cmd, "--steps", "100"], capture_output=True, text=True, timeout=300)
-    assert (
-        bad.returncode == 2
-        and bad.stderr.strip() == "error: --steps must lie in [0, 100), got [100]"
-    )
+    bad = run_script(*cmd, "--steps", "100")
+    assert bad.code == 2 and bad.err.strip() == "error: --steps must lie in [0, 100), got [100]"
 
 
 @pytest.mark.slow
@@ -208,13 +206,12 @@ def test_without_a_better_round_the_first_policy_is_kept() -> None:
     assert checked.rounds == 0 and len(distill.calls) == 1
 
 
-def test_retention_script_tabulates_every_checkpoint(small_run: Path, tmp_path: Path) -> None:
+def test_retention_script_tabulates_every_checkpoint(
+    small_run: Path, tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
     run = shutil.copytree(small_run / "run", tmp_path / "run")
-    proc = subprocess.run(
-        [sys.executable, "scripts/retention.py", "--run", str(run)],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = run_script("scripts/retention.py", "--run", str(run))
+    assert result.code == 0, result.err[-2000:]
     table = json.loads((run / "retention.json").read_text())
     assert len(table["distance"]) == len(table["fit"]) == 2
     assert all(len(row) == 2 for row in table["distance"] + table["fit"])
@@ -224,14 +221,13 @@ def test_retention_script_tabulates_every_checkpoint(small_run: Path, tmp_path: 
         [c["policy_final_distance_end"] for c in summary], rel=1e-9
     )
     assert (run / "retention.png").stat().st_size > 10_000
-    assert "forgotten:" in proc.stdout
+    assert "forgotten:" in result.out
 
 
-def test_scale_table_reads_a_run(small_run: Path) -> None:
-    script = [sys.executable, "scripts/research/scale_table.py", "--run", str(small_run / "run")]
-    proc = subprocess.run([*script, "--at", "1", "2", "--window", "1"], capture_output=True,
-                          text=True, timeout=120)  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    rows = [line for line in proc.stdout.splitlines() if line.startswith("| 1 ") or
+def test_scale_table_reads_a_run(small_run: Path, run_script: Callable[..., ScriptRun]) -> None:
+    script = ["scripts/research/scale_table.py", "--run", str(small_run / "run")]
+    result = run_script(*script, "--at", "1", "2", "--window", "1")
+    assert result.code == 0, result.err[-2000:]
+    rows = [line for line in result.out.splitlines() if line.startswith("| 1 ") or
             line.startswith("| 2 ")]  # fmt: skip
     assert len(rows) == 2

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 import torch
+from conftest import ScriptRun
 
 from lolgps_torch.controllers import smoothed_noise
 from lolgps_torch.errors import NumericalError
@@ -75,14 +74,9 @@ def test_a_blow_up_in_a_worker_is_the_numerical_error_of_the_batch(
     assert task.sample(actor, OFFSETS[:2]).x.isfinite().all()  # the pool still works
 
 
-def test_workers_flag_is_checked_before_any_work(tmp_path: Path) -> None:
-    script = str(ROOT / "scripts" / "run_stream.py")
-    out = str(tmp_path / "run")
-    proc = subprocess.run(
-        [sys.executable, script, "--workers", "0", "--out", out],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == ["error: --workers 0: must be at least 1"]
+def test_workers_flag_is_checked_before_any_work(
+    tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    result = run_script("scripts/run_stream.py", "--workers", "0", "--out", str(tmp_path / "run"))
+    assert result.code == 2
+    assert result.err.strip().splitlines() == ["error: --workers 0: must be at least 1"]

@@ -26,7 +26,7 @@ import os
 import tempfile
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -159,28 +159,6 @@ def config_differences(saved: dict[str, Any], now: dict[str, Any]) -> list[str]:
     ]
 
 
-Position = tuple[float, float]
-
-
-@dataclass(frozen=True)
-class RunInfo:
-    """What a run's config.json says, checked.
-
-    :param task: the task, built from the run folder's URDF copy (the recorded path for runs
-        made before runs kept one).
-    :param conditions: the hole offsets ``(dx, dy)`` (m) in stream order.
-    :param stages: ``{"name", "last_condition"}`` per training stage, in order.
-    :param stream: the stream's settings as saved (``asdict(StreamConfig)``).
-    """
-
-    task: TaskConfig
-    conditions: list[Position]
-    stages: list[dict[str, Any]]
-    method: str
-    seed: int
-    stream: dict[str, Any]
-
-
 class RunFolder:
     """Paths and JSON I/O of one run folder (layout in the module docstring).
 
@@ -257,38 +235,6 @@ class RunFolder:
         if digest != task.get("urdf_sha256"):
             raise LolgpsError(f"{self.urdf_path} does not match its SHA-256 in config.json")
         return replace(config, urdf=str(self.urdf_path.resolve()))
-
-    def read_run(self) -> RunInfo:
-        """config.json, checked: a missing folder or file, a malformed entry or stages that do
-        not end at increasing conditions are a :class:`LolgpsError`."""
-        if not self.path.is_dir():
-            raise LolgpsError(f"run folder not found: {self.path}")
-        config = self.read_config()
-        try:
-            conditions = [(float(dx), float(dy)) for dx, dy in config["conditions"]]
-            stages: list[dict[str, Any]] = [
-                {"name": str(s["name"]), "last_condition": int(s["last_condition"])}
-                for s in config["stages"]
-            ]
-            info = RunInfo(
-                self.task_config(config["task"]),
-                conditions,
-                stages,
-                str(config["method"]),
-                int(config["seed"]),
-                dict(config.get("stream", {})),
-            )
-        except (ValueError, KeyError, TypeError, AttributeError) as error:
-            raise LolgpsError(
-                f"corrupt {self.config_path}: {type(error).__name__}: {error}"
-            ) from None
-        lasts = [s["last_condition"] for s in stages]
-        if not lasts or lasts != sorted(set(lasts)) or not 0 <= lasts[-1] < len(conditions):
-            raise LolgpsError(
-                f"corrupt {self.config_path}: stages must end at increasing conditions below "
-                f"{len(conditions)}, got last_condition {lasts}"
-            )
-        return info
 
     def has_config(self) -> bool:
         return self.config_path.is_file()

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from lolgps_torch.data.checkpoint import load_policy
-from lolgps_torch.data.run_folder import RunFolder, RunInfo, read_json, write_json
+from lolgps_torch.data.run_folder import RunFolder, read_json, write_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, area_centres, area_of, sample_area_positions
 from lolgps_torch.evaluation.jobs import JobResult, run_jobs, run_jobs_on_ray
@@ -34,6 +34,7 @@ from lolgps_torch.evaluation.metrics import (
 from lolgps_torch.evaluation.square import SquareConfig, square_test_positions
 from lolgps_torch.evaluation.transfer import compute_scratch, rates_by_condition, transfer_rows
 from lolgps_torch.evaluation.worker import Job, PolicyState, Position
+from lolgps_torch.lolgps.run import RunInfo, read_run
 
 
 def stage_policies(folder: RunFolder, info: RunInfo) -> list[tuple[int, PolicyState]]:
@@ -102,7 +103,7 @@ def _position_groups(positions: Sequence[Position]) -> list[dict[str, Any]]:
 def _scratch_from(run: RunFolder, info: RunInfo) -> list[list[float]]:
     """Per condition of ``info``, the success rates of the condition at the same offset in
     another run (e.g. a naive one)."""
-    other = run.read_run()
+    other = read_run(run)
     rates = rates_by_condition(run.read_metrics())
     keys = {(round(dx, 9), round(dy, 9)): c for c, (dx, dy) in enumerate(other.conditions)}
     out = []
@@ -251,7 +252,7 @@ def evaluate_run(
     if positions is None and areas is None and square is None:
         areas = AreaConfig()
     folder = RunFolder(run_dir)
-    info = folder.read_run()
+    info = read_run(folder)
     policies = stage_policies(folder, info)
     if square is not None:
         groups = _square_group(*square, info)

@@ -31,9 +31,9 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from lolgps_torch.data.run import LoadedRun
 from lolgps_torch.data.run_folder import atomic_write
 from lolgps_torch.errors import LolgpsError, check_fields
+from lolgps_torch.lolgps.run import LoadedRun
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.sim.pybullet_quiet import pb

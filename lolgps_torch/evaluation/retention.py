@@ -26,8 +26,8 @@ import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from lolgps_torch.data.run import LoadedRun
 from lolgps_torch.data.run_folder import atomic_write
+from lolgps_torch.lolgps.run import LoadedRun
 from lolgps_torch.policy import GaussianPolicy, policy_actor
 from lolgps_torch.types import ConditionSamples
 

@@ -17,10 +17,10 @@ from typing import Any
 
 import torch
 
-from lolgps_torch.configs import from_dict
-from lolgps_torch.data.run_folder import RunFolder, RunInfo, read_json, write_json
+from lolgps_torch.data.run_folder import RunFolder, read_json, write_json
 from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+from lolgps_torch.lolgps.run import RunInfo
 from lolgps_torch.progress import progress
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -87,7 +87,6 @@ def compute_scratch(
     """Per condition of the run, the from-scratch success rates (:func:`scratch_rates` with
     the condition's seed in the stream), in ``workers`` processes; kept in the run folder's
     ``scratch.json`` and reused while it matches the run's conditions and horizon."""
-    local = from_dict(LocalConfig, info.stream["local"])
     seeds = [info.seed * 1000 + c for c in range(len(info.conditions))]
     wanted = {"horizon": horizon, "offsets": [list(o) for o in info.conditions], "seeds": seeds}
     path = folder.path / SCRATCH_FILE
@@ -95,7 +94,10 @@ def compute_scratch(
         cached = read_json(path)
         if isinstance(cached, dict) and {k: cached.get(k) for k in wanted} == wanted:
             return [list(map(float, r)) for r in cached["rates"]]
-    jobs = [(info.task, o, s, local, horizon) for o, s in zip(info.conditions, seeds, strict=True)]
+    jobs = [
+        (info.task, o, s, info.stream.local, horizon)
+        for o, s in zip(info.conditions, seeds, strict=True)
+    ]
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=context) as pool:
         rates = list(progress(pool.map(_scratch_job, jobs), len(jobs), "scratch baselines"))

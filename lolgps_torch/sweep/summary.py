@@ -10,7 +10,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from lolgps_torch.data.run_folder import RunFolder, read_json
+from lolgps_torch.data.run_folder import RunFolder, atomic_write, read_json
+from lolgps_torch.lolgps.run import stream_config
 from lolgps_torch.sweep.cells import CELL_FILE
 from lolgps_torch.sweep.grid import Cell, Outcome, Sweep
 
@@ -55,7 +56,7 @@ def cell_metrics(folder: Path) -> dict[str, float | None] | None:
     if not run.summary_path.is_file():
         return None
     entries = run.read_summary()["conditions"]
-    samples = int(run.read_config()["stream"]["local"]["samples"])
+    samples = stream_config(run, run.read_config()).local.samples
     row: dict[str, float | None] = {key: None for key, _, _ in METRICS}
     if entries:
         row["train_success"] = statistics.fmean(bool(e["policy_success_end"]) for e in entries)
@@ -154,11 +155,15 @@ def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
     """
     fields = ["method", "arm", "stream", "seeds"]
     fields += [f"{k}_{s}" for k, _, _ in METRICS for s in ("mean", "sd", "n")]
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields)
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({f: "" if row[f] is None else row[f] for f in fields})
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=fields)
+            writer.writeheader()
+            for row in rows:
+                writer.writerow({f: "" if row[f] is None else row[f] for f in fields})
+
+    atomic_write(path, write)
 
 
 def plot_summary(path: Path, rows: Sequence[dict[str, Any]]) -> None:
@@ -189,7 +194,7 @@ def plot_summary(path: Path, rows: Sequence[dict[str, Any]]) -> None:
         ax.set_title(f"{title} (mean ± sd over seeds)", fontsize=9)
     axes[0].set_ylim(0.0, 1.05)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
     plt.close(fig)
 
 
@@ -202,7 +207,8 @@ def write_summaries(sweep: Sweep, failed: Sequence[Outcome]) -> list[Path]:
     """
     out = Path(sweep.plan.out)
     rows = aggregate(sweep.cells, out)
-    (out / "summary.md").write_text(markdown_table(rows, failed))
+    text = markdown_table(rows, failed)
+    atomic_write(out / "summary.md", lambda tmp: tmp.write_text(text))
     write_csv(out / "summary.csv", rows)
     written = [out / "summary.md", out / "summary.csv"]
     if rows:

@@ -12,11 +12,9 @@ on a shared machine compare the ratio, not the seconds.
 from __future__ import annotations
 
 import argparse
-import json
 
 from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder
-from lolgps_torch.errors import LolgpsError
 
 PHASES = ("time_sample", "time_fit", "time_cstep", "time_distill")
 
@@ -34,17 +32,13 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for path in args.runs:
         folder = RunFolder(path)
-        metrics, summary = folder.metrics_path, folder.summary_path
-        if not metrics.exists() or not summary.exists():
-            raise LolgpsError(f"{path}: no metrics.jsonl or summary.json (not a finished run)")
         sums = dict.fromkeys(PHASES, 0.0)
         repairs = 0
-        for line in metrics.read_text().splitlines():
-            record = json.loads(line)
+        for record in folder.read_metrics():
             for phase in PHASES:
                 sums[phase] += float(record.get(phase, 0.0))
             repairs += int(record.get("repairs") or 0)
-        entries = json.loads(summary.read_text())["conditions"]
+        entries = folder.read_summary()["conditions"]
         final = sum(bool(e["policy_success_end"]) for e in entries)
         times = " | ".join(f"{sums[p]:.1f}" for p in PHASES)
         ratio = sums["time_distill"] / sums["time_sample"] if sums["time_sample"] else float("nan")

@@ -13,27 +13,24 @@ cost expansion, the step adaptation and p_pre's fit).
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
-from pathlib import Path
 
 from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder
+from lolgps_torch.lolgps.run import read_run
 
 
 def row(path: str) -> str:
     """The Markdown row of one run."""
     folder = RunFolder(path)
-    summary = json.loads((Path(path) / "summary.json").read_text())
-    conditions = summary["conditions"]
-    threshold = folder.read_run().task.world.success_threshold
+    conditions = folder.read_summary()["conditions"]
+    threshold = read_run(folder).task.world.success_threshold
     local = [float(c["local_final_distance"]) for c in conditions]
     worst = max(range(len(local)), key=lambda i: local[i])
     first = [c["first_success_iteration"] for c in conditions]
     found = [f for f in first if f is not None]
     times = {"time_sample": 0.0, "time_fit": 0.0, "time_cstep": 0.0}
-    for line in (Path(path) / "metrics.jsonl").read_text().splitlines():
-        record = json.loads(line)
+    for record in folder.read_metrics():
         if "time_fit" in record:
             for key in times:
                 times[key] += float(record[key])

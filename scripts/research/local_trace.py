@@ -35,6 +35,7 @@ import argparse
 import json
 import time
 from collections.abc import Callable
+from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -50,6 +51,7 @@ from lolgps_torch.dynamics import fit as fit_module
 from lolgps_torch.dynamics.fit import gaussian_regression
 from lolgps_torch.lolgps import local as local_module
 from lolgps_torch.lolgps.local import LocalLearner
+from lolgps_torch.lolgps.run import read_run
 from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, noiseless_distance
 from lolgps_torch.policy import linearize_policy
 from lolgps_torch.task import PegTask
@@ -139,8 +141,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     folder = RunFolder(args.run)
-    info = folder.read_run()
-    config = from_dict(StreamConfig, merge(info.stream, json.loads(args.config)))
+    info = read_run(folder)
+    config = from_dict(StreamConfig, merge(asdict(info.stream), json.loads(args.config)))
     offset = info.conditions[args.condition]
     task = PegTask(info.task, n_worlds=config.local.samples)
     policy = None

@@ -30,9 +30,9 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.cli import run
-from lolgps_torch.data.run import load_run
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
+from lolgps_torch.lolgps.run import load_run
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld

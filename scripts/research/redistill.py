@@ -23,9 +23,9 @@ import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.data.checkpoint import save_policy
-from lolgps_torch.data.run import LoadedRun, load_run
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
+from lolgps_torch.lolgps.run import LoadedRun, load_run
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill, policy_actor
 
 
@@ -66,12 +66,7 @@ def parse_args() -> argparse.Namespace:
 
 def policy_config(args: argparse.Namespace, loaded: LoadedRun) -> PolicyConfig:
     """The S-step settings of the flags, with the run's own p_pre weight by default."""
-    try:
-        run_weight = float(loaded.info.stream["policy"]["pre_weight"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise LolgpsError(
-            f"{loaded.folder.config_path}: no stream.policy.pre_weight ({exc})"
-        ) from None
+    run_weight = loaded.info.stream.policy.pre_weight
     return replace(
         PolicyConfig(),
         pre_weight=run_weight if args.pre_weight is None else args.pre_weight,

@@ -21,14 +21,14 @@ import argparse
 import tempfile
 import time
 from dataclasses import replace
-from pathlib import Path
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
-from lolgps_torch.data.run import load_run
+from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
 from lolgps_torch.lolgps.distillation import CheckedSStep, Distiller, Labelled, Labels
+from lolgps_torch.lolgps.run import load_run
 from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, policy_distances
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
@@ -60,13 +60,13 @@ def parse_args() -> argparse.Namespace:
 def main() -> None:
     args = parse_args()
     loaded = load_run(args.run)
-    seed = int(loaded.info.stream["seed"]) if args.seed is None else args.seed
-    kept = {k: loaded.info.stream[k] for k in ("augment", "augment_scale")}
-    stream = StreamConfig(**kept, seed=seed)
+    run = loaded.info.stream
+    seed = run.seed if args.seed is None else args.seed
+    stream = StreamConfig(augment=run.augment, augment_scale=run.augment_scale, seed=seed)
     adam_dtype: AdamDtype = args.adam_dtype
     config = replace(
         stream.policy,
-        pre_weight=float(loaded.info.stream["policy"]["pre_weight"]),
+        pre_weight=run.policy.pre_weight,
         steps=args.steps,
         batch_size=args.batch_size,
         learning_rate=args.lr,
@@ -80,7 +80,7 @@ def main() -> None:
     total = 0.0
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            replay = ReplayBuffer(Path(tmp) / "replay.h5")
+            replay = ReplayBuffer(RunFolder(tmp).replay_path)
             distill = Distiller(task, config, stream.augment, stream.augment_scale, replay)
             sstep = CheckedSStep(
                 distill, lambda p, o: policy_distances(task, p, o), threshold, args.repairs

@@ -132,13 +132,9 @@ def gps_result(folder: Path, samples: int) -> dict[str, Any]:
     """The trajectory-centric learner's run: iterations, rollouts, rollouts up to the end of
     the first iteration with a successful rollout, time spent sampling, fitting and solving
     (s), and its per-iteration final distances."""
-    summary = read_json(RunFolder(folder).summary_path)
-    metrics_path = RunFolder(folder).metrics_path
-    try:
-        lines = metrics_path.read_text().splitlines()
-    except OSError as error:
-        raise LolgpsError(f"cannot read {metrics_path}: {error.strerror}") from None
-    metrics = [json.loads(line) for line in lines if line.strip()]
+    run = RunFolder(folder)
+    summary = read_json(run.summary_path)
+    metrics = run.read_metrics()
     first = next((m["iteration"] for m in metrics if m["success_rate"] > 0), None)
     return {
         "iterations": int(summary["iterations"]),

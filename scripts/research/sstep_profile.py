@@ -18,16 +18,16 @@ import argparse
 import tempfile
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
-from lolgps_torch.data.run import load_run
+from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
+from lolgps_torch.lolgps.run import load_run
 from lolgps_torch.lolgps.stream import policy_distances
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.sstep import _row_constants, _sgd_rows, set_statistics
@@ -74,12 +74,12 @@ def main() -> None:
     labels = Labels(record.p_cur, record.p_pre, record.iterations)
     item = Labelled(record.offset, record.samples, labels)
     with tempfile.TemporaryDirectory() as tmp:
-        replay = ReplayBuffer(Path(tmp) / "replay.h5")
+        replay = ReplayBuffer(RunFolder(tmp).replay_path)
         for r in loaded.records[:k]:
             replay.append_condition(
                 r.condition, r.offset, r.samples, r.iterations, r.p_cur, r.p_pre
             )
-        distiller = Distiller(task, config, stream["augment"], stream["augment_scale"], replay)
+        distiller = Distiller(task, config, stream.augment, stream.augment_scale, replay)
         gen = torch.Generator().manual_seed(0)
         t_read, stored = best_seconds(
             lambda: [replay.read_condition(i).samples.to_batch() for i in replay.conditions()],
@@ -104,9 +104,7 @@ def main() -> None:
         ):  # a fresh Distiller, so the call reads the replay as a stream's first does
             policy.load_state_dict(state)
             policy.trained = True
-            Distiller(task, config, stream["augment"], stream["augment_scale"], replay)(
-                policy, [item], 0
-            )
+            Distiller(task, config, stream.augment, stream.augment_scale, replay)(policy, [item], 0)
 
         t_all, _ = best_seconds(call, args.repeats)
         offsets = [r.offset for r in loaded.records[: k + 1]]

@@ -30,11 +30,11 @@ import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.data.checkpoint import load_policy
-from lolgps_torch.data.run import LoadedRun, load_run
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import read_evaluation
 from lolgps_torch.evaluation.retention import fit_error
+from lolgps_torch.lolgps.run import LoadedRun, load_run
 from lolgps_torch.policy import GaussianPolicy, policy_actor
 
 
