@@ -73,13 +73,6 @@ class Labelled(NamedTuple):
     labels: Labels
 
 
-def label_source(final: Labels, final_succeeds: bool, sampled: Labels | None) -> Labels:
-    """The final p_cur, unless its own noiseless rollout misses; then the p_cur whose samples
-    last succeeded (``sampled``), so that the policy never imitates a controller known to
-    fail. With no such p_cur, the final one."""
-    return final if final_succeeds or sampled is None else sampled
-
-
 def controller_targets(p: Teacher, x: Tensor) -> tuple[Tensor, Tensor]:
     """Means ``[M, T, dU]`` and precisions ``[M, T, dU, dU]`` of ``p`` at states ``[M, T, dX]``."""
     mean = p.mean_action(x)

@@ -172,8 +172,7 @@ class LocalLearner:
 
         Returns the fit for the C-step: the new one, or, when :func:`step_rejected`, the last
         accepted iteration's fit, with p_cur back at the controller that drew its samples (the
-        step is retried smaller). A step
-        taken at the smallest multiplier is accepted whatever its cost: p_cur is then close
+        step is retried at most half as large). A step taken at the smallest multiplier is accepted whatever its cost: p_cur is then close
         to the accepted controller, and its samples re-measure that controller's cost (a
         lucky low draw of the accepted cost would otherwise reject every later step)."""
         dynamics = self.fitter.update(samples.x, samples.u)
@@ -183,12 +182,17 @@ class LocalLearner:
         totals = samples.cost.sum(1)
         last = self.accepted
         if last is not None:
-            smallest = self.step_mult <= self.config.cstep.step_mult_min  # p_cur's step
+            tried = self.step_mult  # the multiplier of the step that drew these samples
             predicted = laplace_cost(p_act, last.fit.dynamics, last.fit.cost)
             self.step_mult = adapt_step_mult(
-                self.step_mult, last.expected, predicted, expected, self.config.cstep
+                tried, last.expected, predicted, expected, self.config.cstep
             )
+            smallest = tried <= self.config.cstep.step_mult_min
             if not smallest and step_rejected(totals, last, self.start_cost, self.config.reject_z):
+                # retried at most half as large, whatever the new fit predicts
+                self.step_mult = max(
+                    min(self.step_mult, tried / 2), self.config.cstep.step_mult_min
+                )
                 self.p_cur = last.p_cur
                 return last.fit
         else:

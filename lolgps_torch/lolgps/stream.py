@@ -13,7 +13,8 @@
                      (p_bar = p_pre with cstep_anchor "pre", else the previous p_cur)
             D_g(m) += successful rollouts of D_i
         until successful samples from ``success_phases`` iterations are in D_g(m), or a limit
-        label D_g(m) with the final p_cur and p_pre (or the last successful ones)
+        label D_g(m) with the final p_cur and p_pre (if its noiseless rollout misses: the
+            closest of it and the last and the cheapest successfully sampled ones)
         pi <- argmin KL(pi || p_cur) + lambda KL(pi || p_pre) over D_g(m) + replay D_g(<m) (eq. 8)
               repeated from the best pi (a few times at most) while pi misses a condition <= m
 
@@ -46,7 +47,6 @@ from lolgps_torch.lolgps.distillation import (
     Teacher,
     as_controller,
     label,
-    label_source,
 )
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate, rehearse
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
@@ -152,12 +152,15 @@ NOTHING_SPENT = Spent(0, 0)
 
 
 class Successes:
-    """A condition's successful rollouts so far, and the controllers of the latest ones."""
+    """A condition's successful rollouts so far, and the controllers of the latest ones and of
+    the cheapest ones (the iteration with successes whose samples' mean total cost is lowest)."""
 
     def __init__(self) -> None:
         self.kept: list[Trajectories] = []
         self.first: int | None = None
         self.latest: Labels | None = None
+        self.cheapest: Labels | None = None
+        self.cheapest_cost = float("inf")
 
     def add(self, samples: Trajectories, labels: Labels) -> None:
         """Keep the successful ones of ``samples``, drawn by ``labels.p_cur``'s p_act."""
@@ -165,6 +168,9 @@ class Successes:
             self.first = labels.iteration if self.first is None else self.first
             self.kept.append(Trajectories(*(f[samples.success] for f in samples)))
             self.latest = labels
+            cost = float(samples.cost.sum(1).mean())
+            if cost < self.cheapest_cost:
+                self.cheapest, self.cheapest_cost = labels, cost
 
 
 class StreamLearner:
@@ -197,13 +203,8 @@ class StreamLearner:
         outcome, probe = self.transfer(learner, linearize, index)
         if outcome is None:  # learn from the hold controller, after the transfer's iterations
             outcome = self.learn_locally(learner, linearize, index, probe)
-        # D_g is labelled here: by the final p_cur, unless its own rollout misses; the
-        # condition's local controller is the one that labels it
         failure, final = outcome.failure, outcome.final
-        local = float("inf") if failure else self.noiseless(final.p_cur, offset)
-        labels = label_source(final, local < self.threshold, outcome.found.latest)
-        if labels is not final:
-            local = self.noiseless(labels.p_cur, offset)
+        labels, local = self.teacher(outcome, offset)  # D_g is labelled here
         data = label(self.task, outcome.found.kept, labels)
         t0 = time.perf_counter()
         offsets = [*(self.replay.offsets() if self.config.replay else []), offset]
@@ -234,6 +235,23 @@ class StreamLearner:
             index, offset, data, final.iteration, as_controller(labels.p_cur), labels.p_pre
         )
         return entry
+
+    def teacher(self, outcome: Outcome, offset: tuple[float, float]) -> tuple[Labels, float]:
+        """The controllers that label D_g, and their p_cur's noiseless final distance (the
+        condition's local controller): the final p_cur, which no sample has tried, if its
+        noiseless rollout succeeds; otherwise whichever of it and the p_cur of the last and of
+        the cheapest iteration with successful samples ends closest, so that the policy never
+        imitates a controller known to miss when a better one was tried."""
+        final, found = outcome.final, outcome.found
+        scored = [] if outcome.failure else [(self.noiseless(final.p_cur, offset), final)]
+        if scored and scored[0][0] < self.threshold:
+            return final, scored[0][0]
+        tried = {labels.iteration: labels for labels in (found.latest, found.cheapest) if labels}
+        scored += [(self.noiseless(labels.p_cur, offset), labels) for labels in tried.values()]
+        if not scored:  # a numerical failure before any success
+            return final, float("inf")
+        local, labels = min(scored, key=lambda pair: pair[0])
+        return labels, local
 
     def noiseless(self, teacher: Teacher, offset: tuple[float, float]) -> float:
         """Final distance (m) of the teacher's noiseless rollout at ``offset``."""
