@@ -19,8 +19,10 @@ from conftest import ScriptRun, ci_stream_command, finish_script, start_script
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
-from lolgps_torch.lolgps.distillation import Checked, CheckedSStep
+from lolgps_torch.lolgps.distillation import Checked, CheckedSStep, Labels
+from lolgps_torch.lolgps.stream import Outcome, StreamLearner, Successes
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
+from lolgps_torch.types import Trajectories
 
 SCRIPT = [sys.executable, "scripts/run_stream.py", "--urdf", "robots/kuka_peg.urdf"]
 
@@ -238,10 +240,6 @@ def test_a_final_controller_that_misses_hands_d_g_to_the_closest_tried_one() -> 
     when it misses, the closest of it and the p_cur of the last and of the cheapest iteration
     with successful samples labels instead, and its distance is the condition's; after a
     numerical failure only the tried ones compete (none: the final, at infinity)."""
-    from lolgps_torch.lolgps.distillation import Labels
-    from lolgps_torch.lolgps.stream import Outcome, StreamLearner, Successes
-    from lolgps_torch.types import Trajectories
-
     learner = object.__new__(StreamLearner)
     learner.task = SimpleNamespace(config=SimpleNamespace(world=SimpleNamespace(success_threshold=0.06)))  # fmt: skip
     distances = {"final": 0.2, "last": 0.15, "cheapest": 0.002}
