@@ -235,33 +235,36 @@ def test_scale_table_reads_a_run(small_run: Path, run_script: Callable[..., Scri
     assert len(rows) == 2
 
 
-def test_a_final_controller_that_misses_hands_d_g_to_the_closest_tried_one() -> None:
+def test_a_final_controller_that_misses_hands_d_g_to_the_newest_tried_one_that_succeeds() -> None:
     """The final p_cur has not been sampled: when its noiseless rollout succeeds it labels D_g;
-    when it misses, the closest of it and the p_cur of the last and of the cheapest iteration
-    with successful samples labels instead, and its distance is the condition's; after a
-    numerical failure only the tried ones compete (none: the final, at infinity)."""
+    when it misses, the p_cur of the newest iteration with successful samples whose noiseless
+    rollout succeeds labels instead (a converged controller that later steps degraded), and
+    its distance is the condition's; when every one misses, the closest; after a numerical
+    failure only the tried ones compete (none: the final, at infinity)."""
     learner = object.__new__(StreamLearner)
     learner.task = SimpleNamespace(config=SimpleNamespace(world=SimpleNamespace(success_threshold=0.06)))  # fmt: skip
-    distances = {"final": 0.2, "last": 0.15, "cheapest": 0.002}
-    learner.noiseless = lambda p, offset: distances[p]
+    distances = {"final": 0.2, "it0": 0.3, "it1": 0.002, "it2": 0.15}
+    asked: list[str] = []
+    learner.noiseless = lambda p, offset: asked.append(p) or distances[p]
     found = Successes()
-    zeros, one_hit = torch.zeros(2, 3), torch.tensor([True, False])
-    for i, (name, cost) in enumerate((("cheapest", 1.0), ("last", 9.0))):
-        samples = Trajectories(zeros, zeros, zeros + cost, zeros[:, 0], one_hit, zeros)
-        Successes.add(found, samples, Labels(name, None, i))
+    zeros, one_hit, no_hit = torch.zeros(2, 3), torch.tensor([True, False]), torch.zeros(2) > 0
+    for i, name in enumerate(("it0", "it1", "none", "it2")):
+        samples = Trajectories(zeros, zeros, zeros, zeros[:, 0], no_hit if name == "none" else one_hit, zeros)  # fmt: skip
+        found.add(samples, Labels(name, None, i))
     final = Labels("final", None, 5)
 
     def teacher(failure: str | None = None) -> tuple[object, int, float]:
+        asked.clear()
         labels, local = learner.teacher(Outcome(found, final, 30, failure), (0.0, 0.0))
         return labels.p_cur, labels.iteration, local
 
-    assert (found.latest, found.cheapest) == (Labels("last", None, 1), Labels("cheapest", None, 0))
-    assert teacher() == ("cheapest", 0, 0.002)
+    assert [labels.iteration for labels in found.tried] == [0, 1, 3]
+    assert teacher() == ("it1", 1, 0.002) and asked == ["final", "it2", "it1"]
     distances["final"] = 0.01
-    assert teacher() == ("final", 5, 0.01)
-    distances["final"], distances["cheapest"] = 0.1, 0.3
+    assert teacher() == ("final", 5, 0.01) and asked == ["final"]
+    distances["final"], distances["it1"] = 0.1, 0.3
     assert teacher() == ("final", 5, 0.1)  # all miss: the closest
-    assert teacher("iteration 4: diverged") == ("last", 1, 0.15)
+    assert teacher("iteration 4: diverged") == ("it2", 3, 0.15)
     assert learner.teacher(Outcome(Successes(), final, 30, "diverged"), (0.0, 0.0)) == (
         final,
         float("inf"),

@@ -13,8 +13,8 @@
                      (p_bar = p_pre with cstep_anchor "pre", else the previous p_cur)
             D_g(m) += successful rollouts of D_i
         until successful samples from ``success_phases`` iterations are in D_g(m), or a limit
-        label D_g(m) with the final p_cur and p_pre (if its noiseless rollout misses: the
-            closest of it and the last and the cheapest successfully sampled ones)
+        label D_g(m) with the final p_cur and p_pre (if its noiseless rollout misses: with
+            the newest successfully sampled ones whose noiseless rollout succeeds)
         pi <- argmin KL(pi || p_cur) + lambda KL(pi || p_pre) over D_g(m) + replay D_g(<m) (eq. 8)
               repeated from the best pi (a few times at most) while pi misses a condition <= m
 
@@ -152,25 +152,20 @@ NOTHING_SPENT = Spent(0, 0)
 
 
 class Successes:
-    """A condition's successful rollouts so far, and the controllers of the latest ones and of
-    the cheapest ones (the iteration with successes whose samples' mean total cost is lowest)."""
+    """A condition's successful rollouts so far, and the controllers of every iteration that
+    drew some (``tried``, oldest first)."""
 
     def __init__(self) -> None:
         self.kept: list[Trajectories] = []
         self.first: int | None = None
-        self.latest: Labels | None = None
-        self.cheapest: Labels | None = None
-        self.cheapest_cost = float("inf")
+        self.tried: list[Labels] = []
 
     def add(self, samples: Trajectories, labels: Labels) -> None:
         """Keep the successful ones of ``samples``, drawn by ``labels.p_cur``'s p_act."""
         if samples.success.any():
             self.first = labels.iteration if self.first is None else self.first
             self.kept.append(Trajectories(*(f[samples.success] for f in samples)))
-            self.latest = labels
-            cost = float(samples.cost.sum(1).mean())
-            if cost < self.cheapest_cost:
-                self.cheapest, self.cheapest_cost = labels, cost
+            self.tried.append(labels)
 
 
 class StreamLearner:
@@ -238,18 +233,19 @@ class StreamLearner:
 
     def teacher(self, outcome: Outcome, offset: tuple[float, float]) -> tuple[Labels, float]:
         """The controllers that label D_g, and their p_cur's noiseless final distance (the
-        condition's local controller): the final p_cur, which no sample has tried, if its
-        noiseless rollout succeeds; otherwise whichever of it and the p_cur of the last and of
-        the cheapest iteration with successful samples ends closest, so that the policy never
-        imitates a controller known to miss when a better one was tried."""
-        final, found = outcome.final, outcome.found
-        scored = [] if outcome.failure else [(self.noiseless(final.p_cur, offset), final)]
-        if scored and scored[0][0] < self.threshold:
-            return final, scored[0][0]
-        tried = {labels.iteration: labels for labels in (found.latest, found.cheapest) if labels}
-        scored += [(self.noiseless(labels.p_cur, offset), labels) for labels in tried.values()]
+        condition's local controller): the newest of the final p_cur (which no sample has
+        tried; not after a numerical failure) and the p_cur of each iteration with successful
+        samples whose noiseless rollout succeeds, else the closest of them, so that the policy
+        never imitates a controller known to miss when a better one was tried."""
+        candidates = [] if outcome.failure else [outcome.final]
+        scored = []
+        for labels in candidates + outcome.found.tried[::-1]:
+            local = self.noiseless(labels.p_cur, offset)
+            if local < self.threshold:
+                return labels, local
+            scored.append((local, labels))
         if not scored:  # a numerical failure before any success
-            return final, float("inf")
+            return outcome.final, float("inf")
         local, labels = min(scored, key=lambda pair: pair[0])
         return labels, local
 
