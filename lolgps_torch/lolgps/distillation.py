@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.data import ReplayBuffer
-from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill
+from lolgps_torch.policy import Gains, GaussianPolicy, PolicyConfig, distill
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian, Trajectories
 
@@ -126,6 +126,19 @@ def consistent_states(task: PegTask, x: Tensor, offset: tuple[float, float]) -> 
     return out
 
 
+def teacher_gains(p: Teacher | None, x: Tensor, dU: int) -> Gains:
+    """p_cur's gains at the rows of states ``x: [M, T, dX]``, flattened as
+    :meth:`ConditionSamples.to_batch` flattens them; unknown unless ``p`` is linear-Gaussian."""
+    M, T, dX = x.shape
+    known = isinstance(p, LinearGaussian)
+    K = p.K.expand(M, T, dU, dX) if isinstance(p, LinearGaussian) else x.new_zeros(M, T, dU, dX)
+    mask = torch.full((M * T,), known, dtype=torch.bool, device=x.device)
+    return Gains(K.reshape(M * T, dU, dX), mask)
+
+
+Part = tuple[DistillBatch, Gains | None]
+
+
 class Distiller:
     """The S-step with replay: owns nothing but the settings, the replay it reads and the
     rows it has read from it.
@@ -147,6 +160,7 @@ class Distiller:
         self.task, self.config, self.replay = task, config, replay
         self.augment, self.augment_scale = augment, augment_scale
         self._rows: dict[int, DistillBatch] = {}
+        self._teachers: dict[int, tuple[LinearGaussian | None, Tensor]] = {}
 
     def __call__(
         self,
@@ -163,24 +177,32 @@ class Distiller:
             conditions in order, ``R + i`` the ``new`` item ``i``.
         :param config: the S-step's settings (default: the distiller's).
         """
+        config = config or self.config
+        with_gains = config.sobolev > 0.0
         gen = torch.Generator().manual_seed(seed)
-        stored = self._stored()
-        batches = []
-        for place, rows in enumerate(stored):
-            batches += [rows] * (2 if place in emphasis else 1)
+        stored = self._stored(with_gains)
+        parts: list[Part] = []
+        for place, part in enumerate(stored):
+            parts += [part] * (2 if place in emphasis else 1)
         for place, item in enumerate(new, start=len(stored)):
-            own = [item.data.to_batch()]
+            gains = self._gains(item.labels.p_cur, item.data.x) if with_gains else None
+            own: list[Part] = [(item.data.to_batch(), gains)]
             if item.data.x.shape[0] > 1 and self.augment > 0:
-                own.append(self._augmented(item, gen))
-            batches += own * (2 if place in emphasis else 1)
-        batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
+                own.append(self._augmented(item, gen, with_gains))
+            parts += own * (2 if place in emphasis else 1)
+        batch = DistillBatch(*(torch.cat(f) for f in zip(*(b for b, _ in parts), strict=True)))
         if batch.x.shape[0] == 0:
             return []
-        return distill(policy, batch, config or self.config, gen)
+        known = [g for _, g in parts if g is not None]
+        gains_all = Gains(*(torch.cat(f) for f in zip(*known, strict=True))) if with_gains else None
+        return distill(policy, batch, config, gen, gains_all)
 
-    def _stored(self) -> list[DistillBatch]:
-        """The replay's rows, condition by condition; each condition is read from the file
-        once (the replay only grows) and kept."""
+    def _gains(self, p: Teacher | None, x: Tensor) -> Gains:
+        return teacher_gains(p, x, self.task.layout.dU)
+
+    def _stored(self, with_gains: bool) -> list[Part]:
+        """The replay's rows, condition by condition, with p_cur's gains if ``with_gains``;
+        each condition is read from the file once (the replay only grows) and kept."""
         if self.replay is None:
             return []
         conditions = self.replay.conditions()
@@ -188,11 +210,16 @@ class Distiller:
             if index not in self._rows:
                 record = self.replay.read_condition(index, self.task.device)
                 self._rows[index] = record.samples.to_batch()
-        return [self._rows[index] for index in conditions]
+                self._teachers[index] = (record.p_cur, record.samples.x)
+        return [
+            (self._rows[i], self._gains(*self._teachers[i]) if with_gains else None)
+            for i in conditions
+        ]
 
-    def _augmented(self, item: Labelled, gen: torch.Generator) -> DistillBatch:
+    def _augmented(self, item: Labelled, gen: torch.Generator, with_gains: bool) -> Part:
         """``augment`` copies of D_g's states, q and q-dot perturbed by ``augment_scale`` times
-        the per-step spread of the condition's successes, labelled by its controllers."""
+        the per-step spread of the condition's successes, labelled by its controllers (with
+        p_cur's gains if ``with_gains``)."""
         x = item.data.x
         spread = (x - x.mean(0)).std(0)  # [T, dX]
         noise = torch.randn(self.augment, *x.shape, generator=gen, dtype=x.dtype)
@@ -201,7 +228,7 @@ class Distiller:
         aug = ConditionSamples(
             x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0], *targets(x_aug, item.labels)
         )
-        return aug.to_batch()
+        return aug.to_batch(), self._gains(item.labels.p_cur, x_aug) if with_gains else None
 
 
 Offsets = list[tuple[float, float]]

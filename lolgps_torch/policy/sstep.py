@@ -3,7 +3,8 @@
     pi_theta <- argmin_theta  E_{x in D_g} [ KL(pi_theta(.|x) || p_cur(.|x))
                                              + lambda KL(pi_theta(.|x) || p_pre(.|x)) ]
 
-lambda (``PolicyConfig.pre_weight``) is 1 in the paper.
+lambda (``PolicyConfig.pre_weight``) is 1 in the paper. With ``PolicyConfig.sobolev`` the
+policy's state Jacobian is also fitted to p_cur's feedback gains (:class:`Gains`).
 
 Layout: rows are states flattened over samples and time, ``[M, ...]``.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -20,6 +22,18 @@ from torch import Tensor
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
 from lolgps_torch.types import DistillBatch
+
+
+class Gains(NamedTuple):
+    """p_cur's feedback gain ``K_t`` at each row of a :class:`DistillBatch`, the target of the
+    policy's state Jacobian in the Sobolev term (``PolicyConfig.sobolev``).
+
+    K: ``[M, dU, dX]``; known: ``[M]`` bool, false where the teacher is not linear-Gaussian
+    (those rows carry no Sobolev term; their ``K`` is ignored).
+    """
+
+    K: Tensor
+    known: Tensor
 
 
 def _check(batch: DistillBatch) -> None:
@@ -177,11 +191,29 @@ def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch, dtype: torch.dtype) -
     return DistillBatch(*(f.to(dtype) if f.is_floating_point() else f for f in scaled))
 
 
+def _sgd_gains(policy: GaussianPolicy, gains: Gains, dtype: torch.dtype) -> Gains:
+    """The gains in the net's own units, ``K' = diag(1/u_scale) K diag(x_std)`` (the Jacobian of
+    the unscaled output in whitened states), zeroed where unknown, in ``dtype``."""
+    scaled = gains.K * policy.x_std / policy.u_scale[:, None]
+    return Gains(torch.where(gains.known[:, None, None], scaled, 0.0).to(dtype), gains.known)
+
+
+def _sobolev_term(
+    derivative: Tensor, v: Tensor, K: Tensor, known: Tensor, prec: Tensor, weight: float
+) -> Tensor:
+    """``w/2`` times the mean over rows of ``r^T P' r``, ``r = J v - K' v`` (zero where the
+    gain is unknown): the Sobolev term of ``PolicyConfig.sobolev``."""
+    residual = derivative - (K * v.unsqueeze(-2)).sum(-1)
+    residual = torch.where(known[:, None], residual, 0.0)
+    return 0.5 * weight * _quadratic(residual, prec).mean()
+
+
 def distill(
     policy: GaussianPolicy,
     batch: DistillBatch,
     config: PolicyConfig | None = None,
     generator: torch.Generator | None = None,
+    gains: Gains | None = None,
 ) -> list[float]:
     """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8).
 
@@ -197,16 +229,27 @@ def distill(
     recorded per step is the full KL loss of that minibatch. Marks the policy trained.
     Deterministic for a given ``generator`` state.
 
+    With ``gains`` and ``config.sobolev`` > 0, the first ``config.sobolev_rows`` rows of each
+    minibatch also carry the Sobolev term (``PolicyConfig.sobolev``; a direction ``v`` per row
+    and step, drawn from ``generator`` after the minibatches), and the loss recorded includes it.
+
     :param policy: the global policy, trained in place.
     :param batch: successful states with their targets (detached here).
     :param config: training settings (default ``policy.config``).
     :param generator: source of the minibatch draws (default: seeded by ``config.seed``).
+    :param gains: p_cur's feedback gains at the rows (None: no Sobolev term).
     :return: minibatch loss per Adam step, ``config.steps`` floats.
     """
     config = config if config is not None else policy.config
     generator = generator if generator is not None else torch.Generator().manual_seed(config.seed)
     _check(batch)
     batch = DistillBatch(*(field.detach() for field in batch))
+    if gains is not None and (
+        gains.K.shape != (batch.M, policy.dU, policy.dX) or gains.known.shape != (batch.M,)
+    ):
+        raise LolgpsError(
+            f"gains: K {tuple(gains.K.shape)}, known {tuple(gains.known.shape)} for {batch.M} rows"
+        )
     set_statistics(policy, batch, config.pre_weight)
     dtype = getattr(torch, config.adam_dtype)
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
@@ -222,9 +265,26 @@ def distill(
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)
             rows_all = _sgd_rows(policy, batch, dtype)
+            gains_all = None
+            if gains is not None and config.sobolev > 0.0:
+                gains_all = _sgd_gains(policy, gains, dtype)
+        R = config.sobolev_rows
         for index in draws:
             rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
-            loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
+            if gains_all is None:
+                loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
+            else:
+                v = torch.randn(R, policy.dX, generator=generator, dtype=dtype).to(rows.x.device)
+                mean, derivative = trainee.unscaled_jvp(rows.x, v)
+                head = index[:R]
+                loss = _row_quadratics(mean, rows, config.pre_weight).mean() + _sobolev_term(
+                    derivative,
+                    v,
+                    gains_all.K.index_select(0, head),
+                    gains_all.known.index_select(0, head),
+                    rows.prec_cur[:R],
+                    config.sobolev,
+                )
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()

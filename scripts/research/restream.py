@@ -2,6 +2,7 @@
 
     python scripts/research/restream.py --run DIR [--steps N] [--batch-size B] [--lr LR]
                                         [--adam-dtype float32] [--repairs R] [--seed S]
+                                        [--sobolev W] [--sobolev-rows R]
 
 Local learning is not repeated: condition ``k``'s D_g (its stored samples and controllers)
 is distilled into the policy of the S-step of ``k - 1`` with the replay of ``0 .. k-1``, as
@@ -46,6 +47,10 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--adam-dtype", choices=("float32", "float64"), default=d.policy.adam_dtype)
     parser.add_argument("--repairs", type=int, default=d.repairs, help="(%(default)s)")
     parser.add_argument(
+        "--sobolev", type=float, default=d.policy.sobolev, help="PolicyConfig.sobolev"
+    )
+    parser.add_argument("--sobolev-rows", type=int, default=d.policy.sobolev_rows)
+    parser.add_argument(
         "--seed",
         type=int,
         default=None,
@@ -72,6 +77,8 @@ def main() -> None:
         learning_rate=args.lr,
         adam_dtype=adam_dtype,
         seed=seed,
+        sobolev=args.sobolev,
+        sobolev_rows=args.sobolev_rows,
     )
     task = loaded.make_task()
     threshold = task.config.world.success_threshold
