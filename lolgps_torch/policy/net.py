@@ -41,13 +41,13 @@ class PolicyConfig:
         scaled targets); the policy itself stays float64. float32 takes a third less time and
         fits as well, but refitting Panda seed 1's stream with it kept 6/8 positions against
         8/8 in float64 (docs/RESULTS.md section 12.1), so float64 stays the default.
-    :param sobolev: weight ``w`` of the Sobolev term, which also fits the policy's state
-        Jacobian to p_cur's feedback gain ``K_t`` at the rows (0: off). With
-        ``J(z) = d MLP / dz`` in whitened states ``z`` and the gain and precision in the same
-        units, ``K' = diag(1/u_scale) K_t diag(x_std)``, ``P' = S P_cur S``, each row adds
-        ``w/2 (J(z) v - K' v)^T P' (J(z) v - K' v)`` for a fresh ``v ~ N(0, I)`` per step,
-        whose mean over ``v`` is ``w/2 tr((J - K')^T P' (J - K'))``: to second order, the
-        KL to p_cur averaged over whitened states within ``sqrt(w)`` of the row.
+    :param sobolev: weight ``w`` of the Sobolev term, which also fits the policy's derivative
+        along a state direction to p_cur's feedback gain ``K_t`` there (0: off). At a D_g
+        state ``x`` with direction ``v`` (kinematically consistent, of the size of the
+        per-step spread of the condition's samples), each row adds
+        ``w/2 (J(x) v - K_t v)^T P_cur (J(x) v - K_t v)``, ``J = d mu_theta / dx``: to second
+        order, ``w`` times the mean KL to p_cur over the states ``x + s v``, ``s ~ N(0, 1)``,
+        beyond the KL at ``x``.
     :param sobolev_rows: how many of each minibatch's rows carry the Sobolev term (the
         first ones of a uniform draw, so a uniform subset); each costs a forward-mode pass.
     """

@@ -25,14 +25,16 @@ from lolgps_torch.types import DistillBatch
 
 
 class Gains(NamedTuple):
-    """p_cur's feedback gain ``K_t`` at each row of a :class:`DistillBatch`, the target of the
-    policy's state Jacobian in the Sobolev term (``PolicyConfig.sobolev``).
+    """p_cur's feedback gain ``K_t`` at each row of a :class:`DistillBatch` and a state direction
+    ``v`` there: the policy's derivative along ``v`` is fitted to ``K_t v`` in the Sobolev term
+    (``PolicyConfig.sobolev``).
 
-    K: ``[M, dU, dX]``; known: ``[M]`` bool, false where the teacher is not linear-Gaussian
-    (those rows carry no Sobolev term; their ``K`` is ignored).
+    K: ``[M, dU, dX]``; direction: ``[M, dX]`` (state units); known: ``[M]`` bool, false where
+    the row carries no Sobolev term (its ``K`` and direction are ignored).
     """
 
     K: Tensor
+    direction: Tensor
     known: Tensor
 
 
@@ -191,20 +193,24 @@ def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch, dtype: torch.dtype) -
     return DistillBatch(*(f.to(dtype) if f.is_floating_point() else f for f in scaled))
 
 
-def _sgd_gains(policy: GaussianPolicy, gains: Gains, dtype: torch.dtype) -> Gains:
-    """The gains in the net's own units, ``K' = diag(1/u_scale) K diag(x_std)`` (the Jacobian of
-    the unscaled output in whitened states), zeroed where unknown, in ``dtype``."""
-    scaled = gains.K * policy.x_std / policy.u_scale[:, None]
-    return Gains(torch.where(gains.known[:, None, None], scaled, 0.0).to(dtype), gains.known)
+def _sgd_gains(
+    policy: GaussianPolicy, gains: Gains, dtype: torch.dtype
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The Sobolev term's rows in the net's own units, in ``dtype``: the target derivative of
+    the unscaled output ``diag(1/u_scale) K v`` ``[M, dU]``, along the whitened direction
+    ``v / x_std`` ``[M, dX]`` (both zero where unknown), and ``known``."""
+    known = gains.known[:, None]
+    target = torch.where(known, (gains.K @ gains.direction.unsqueeze(-1)).squeeze(-1), 0.0)
+    direction = torch.where(known, gains.direction / policy.x_std, 0.0)
+    return (target / policy.u_scale).to(dtype), direction.to(dtype), gains.known
 
 
 def _sobolev_term(
-    derivative: Tensor, v: Tensor, K: Tensor, known: Tensor, prec: Tensor, weight: float
+    derivative: Tensor, target: Tensor, known: Tensor, prec: Tensor, weight: float
 ) -> Tensor:
-    """``w/2`` times the mean over rows of ``r^T P' r``, ``r = J v - K' v`` (zero where the
-    gain is unknown): the Sobolev term of ``PolicyConfig.sobolev``."""
-    residual = derivative - (K * v.unsqueeze(-2)).sum(-1)
-    residual = torch.where(known[:, None], residual, 0.0)
+    """``w/2`` times the mean over rows of ``r^T P' r``, ``r`` = derivative - target (zero where
+    unknown): the Sobolev term of ``PolicyConfig.sobolev`` in the net's units."""
+    residual = torch.where(known[:, None], derivative - target, 0.0)
     return 0.5 * weight * _quadratic(residual, prec).mean()
 
 
@@ -230,8 +236,8 @@ def distill(
     Deterministic for a given ``generator`` state.
 
     With ``gains`` and ``config.sobolev`` > 0, the first ``config.sobolev_rows`` rows of each
-    minibatch also carry the Sobolev term (``PolicyConfig.sobolev``; a direction ``v`` per row
-    and step, drawn from ``generator`` after the minibatches), and the loss recorded includes it.
+    minibatch also carry the Sobolev term (``PolicyConfig.sobolev``, along each row's direction),
+    and the loss recorded includes it.
 
     :param policy: the global policy, trained in place.
     :param batch: successful states with their targets (detached here).
@@ -274,16 +280,10 @@ def distill(
             if gains_all is None:
                 loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
             else:
-                v = torch.randn(R, policy.dX, generator=generator, dtype=dtype).to(rows.x.device)
+                target, v, known = (f.index_select(0, index[:R]) for f in gains_all)
                 mean, derivative = trainee.unscaled_jvp(rows.x, v)
-                head = index[:R]
                 loss = _row_quadratics(mean, rows, config.pre_weight).mean() + _sobolev_term(
-                    derivative,
-                    v,
-                    gains_all.K.index_select(0, head),
-                    gains_all.known.index_select(0, head),
-                    rows.prec_cur[:R],
-                    config.sobolev,
+                    derivative, target, known, rows.prec_cur[:R], config.sobolev
                 )
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
