@@ -250,12 +250,12 @@ def distill(
     generator = generator if generator is not None else torch.Generator().manual_seed(config.seed)
     _check(batch)
     batch = DistillBatch(*(field.detach() for field in batch))
-    if gains is not None and (
-        gains.K.shape != (batch.M, policy.dU, policy.dX) or gains.known.shape != (batch.M,)
-    ):
-        raise LolgpsError(
-            f"gains: K {tuple(gains.K.shape)}, known {tuple(gains.known.shape)} for {batch.M} rows"
+    wanted = [(batch.M, policy.dU, policy.dX), (batch.M, policy.dX), (batch.M,)]
+    if gains is not None and [tuple(f.shape) for f in gains] != wanted:
+        got = ", ".join(
+            f"{name} {tuple(f.shape)}" for name, f in zip(gains._fields, gains, strict=True)
         )
+        raise LolgpsError(f"gains: {got} for {batch.M} rows of {policy.dX} -> {policy.dU}")
     set_statistics(policy, batch, config.pre_weight)
     dtype = getattr(torch, config.adam_dtype)
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
@@ -274,7 +274,7 @@ def distill(
             gains_all = None
             if gains is not None and config.sobolev > 0.0:
                 gains_all = _sgd_gains(policy, gains, dtype)
-        R = config.sobolev_rows
+        R = min(config.sobolev_rows, config.batch_size)
         for index in draws:
             rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
             if gains_all is None:

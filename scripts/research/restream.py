@@ -11,9 +11,12 @@ closed-loop check at the positions learnt so far, ``--repairs`` repair rounds). 
 p_pre are those the original stream's policy gave. Prints, per condition, the positions the
 policy reaches after its S-step, the repair rounds and the CPU seconds of the checked S-step;
 then the final policy's distances at every position and its fit on D_g in teacher standard
-deviations (``scripts/research/precision.py``'s ``fit``), so S-step settings are compared on
-the same data in a minute rather than re-running streams. With the run's own S-step settings
-and seed (the default seed) it repeats the run's S-steps exactly.
+deviations (``scripts/research/precision.py``'s ``fit``), its slope fit (the error of its
+derivative along :func:`state_directions` against p_cur's ``K_t v``, in the same units, per
+window of ten steps) and the positions it reaches with the hole moved by ``--jitter`` mm along
++x, -x, +y and -y, so S-step settings are compared on the same data in a minute rather than
+re-running streams. With the run's own S-step settings and seed (the default seed) it repeats
+the run's S-steps exactly.
 """
 
 from __future__ import annotations
@@ -24,15 +27,25 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import torch
+
 from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.replay import ConditionRecord
 from lolgps_torch.data.run import load_run
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
-from lolgps_torch.lolgps.distillation import CheckedSStep, Distiller, Labelled, Labels
+from lolgps_torch.lolgps.distillation import (
+    CheckedSStep,
+    Distiller,
+    Labelled,
+    Labels,
+    state_directions,
+)
 from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, policy_distances
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
+from lolgps_torch.task import PegTask
 
 
 def parse_args() -> argparse.Namespace:
@@ -50,6 +63,7 @@ def parse_args() -> argparse.Namespace:
         "--sobolev", type=float, default=d.policy.sobolev, help="PolicyConfig.sobolev"
     )
     parser.add_argument("--sobolev-rows", type=int, default=d.policy.sobolev_rows)
+    parser.add_argument("--jitter", type=float, default=4.0, help="mm (%(default)s)")
     parser.add_argument(
         "--seed",
         type=int,
@@ -110,6 +124,10 @@ def main() -> None:
                     k, record.offset, record.samples, record.iterations, record.p_cur, record.p_pre
                 )
         final = policy_distances(task, policy, offsets)
+        j = args.jitter / 1000.0
+        moved = [(x + a, y + b) for x, y in offsets for a, b in ((j, 0), (-j, 0), (0, j), (0, -j))]
+        jittered = policy_distances(task, policy, moved)
+        slope = slope_by_window(task, policy, loaded.records)
     finally:
         task.close()
     fit = fit_by_window(policy, loaded)
@@ -120,6 +138,29 @@ def main() -> None:
         + " ".join(f"{v:.1f}" for v in fit)
         + f"); S-steps {total:.1f} CPU s"
     )
+    print(
+        f"slope fit {sum(slope) / len(slope):.2f} teacher sd (per 10 steps: "
+        + " ".join(f"{v:.1f}" for v in slope)
+        + f"); hole moved {args.jitter:g} mm: reaches "
+        + f"{sum(d < threshold for d in jittered)}/{len(jittered)}"
+    )
+
+
+def slope_by_window(
+    task: PegTask, policy: GaussianPolicy, records: list[ConditionRecord]
+) -> list[float]:
+    """``sqrt(r^T P_cur r)``, ``r = J(x) v - K_t v`` for the policy's Jacobian ``J`` along
+    :func:`state_directions` ``v`` at every stored state, averaged per window of ten steps."""
+    errors = []
+    for record in records:
+        x, p = record.samples.x, record.p_cur
+        if x.shape[0] == 0 or p is None:
+            continue
+        v = state_directions(task, x)
+        derivative = torch.func.jvp(policy, (x,), (v,))[1]
+        r = (derivative - (p.K @ v.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1)
+        errors.append((r.mT @ record.samples.prec_cur @ r).flatten(-3).sqrt())
+    return [float(w.mean()) for w in torch.cat(errors).mean(0).split(10)]
 
 
 if __name__ == "__main__":
