@@ -85,7 +85,7 @@ def main() -> None:
             lambda: [replay.read_condition(i).samples.to_batch() for i in replay.conditions()],
             args.repeats,
         )
-        t_aug, aug = best_seconds(lambda: distiller._augmented(item, gen), args.repeats)
+        t_aug, (aug, _) = best_seconds(lambda: distiller._augmented(item, gen, False), args.repeats)
         batch = DistillBatch(
             *(torch.cat(f) for f in zip(*stored, record.samples.to_batch(), aug, strict=True))
         )
