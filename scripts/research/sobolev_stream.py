@@ -28,6 +28,7 @@ def main() -> None:
     if spec is None or spec.loader is None:
         raise RuntimeError(f"cannot load {path}")
     module = importlib.util.module_from_spec(spec)
+    sys.modules["run_stream"] = module  # its dataclasses look their module up
     spec.loader.exec_module(module)
     names = vars(module)
     flags = names["STREAM_FLAGS"]
