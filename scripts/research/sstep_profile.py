@@ -1,11 +1,12 @@
 """Where one stream S-step's time goes, rebuilt from a finished run (paper eq. 8).
 
-    python scripts/research/sstep_profile.py --run DIR [--condition K] [--repeats 2]
+    python scripts/research/sstep_profile.py --run DIR [--condition K] [--repeats 2] [--sobolev W]
 
 The S-step of condition ``K`` (default: the last) is rebuilt as the stream ran it: the
 replay of conditions ``0 .. K-1`` (copied into a temporary replay file), condition ``K``'s D_g
 as the new item labelled by its stored controllers, and the policy checkpointed after
-``K - 1``, with the run's S-step settings. It prints the rows, then the seconds (best of
+``K - 1``, with the run's S-step settings (``--sobolev``: with ``PolicyConfig.sobolev`` set;
+the gains and directions are then part of the call). It prints the rows, then the seconds (best of
 ``--repeats``, CPU time of this process) of each part: reading the replay, the new D_g's
 perturbed copies, the statistics and constant terms, the Adam loop (the whole call less
 those), and one closed-loop check (the policy's noiseless rollouts at the ``K + 1`` positions
@@ -18,6 +19,7 @@ import argparse
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +43,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--run", required=True, help="finished run folder")
     parser.add_argument("--condition", type=int, default=None, help="(default: the last)")
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--sobolev", type=float, default=None, help="(default: the run's)")
     return parser.parse_args()
 
 
@@ -71,6 +74,8 @@ def main() -> None:
         else GaussianPolicy(task.layout.dX, task.layout.dU, loaded.policy(0).config)
     )
     config = policy.config
+    if args.sobolev is not None:
+        config = replace(config, sobolev=args.sobolev)
     labels = Labels(record.p_cur, record.p_pre, record.iterations)
     item = Labelled(record.offset, record.samples, labels)
     with tempfile.TemporaryDirectory() as tmp:
