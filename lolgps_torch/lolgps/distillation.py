@@ -23,8 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from lolgps_torch.data import ReplayBuffer
-from lolgps_torch.data.replay import ConditionRecord
+from lolgps_torch.data import ConditionRecord, ReplayBuffer
 from lolgps_torch.policy import Gains, GaussianPolicy, PolicyConfig, distill
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian, Trajectories

@@ -30,8 +30,7 @@ from pathlib import Path
 import torch
 
 from lolgps_torch.cli import run
-from lolgps_torch.data import ReplayBuffer
-from lolgps_torch.data.replay import ConditionRecord
+from lolgps_torch.data import ConditionRecord, ReplayBuffer
 from lolgps_torch.data.run import load_run
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
