@@ -46,8 +46,10 @@ class PolicyConfig:
         state ``x`` with direction ``v`` (kinematically consistent, of the size of the
         per-step spread of the condition's samples), each row adds
         ``w/2 (J(x) v - K_t v)^T P_cur (J(x) v - K_t v)``, ``J = d mu_theta / dx``: up to the
-        policy's curvature along ``v``, ``w`` times the mean KL to p_cur over the states ``x + s v``,
-        ``s ~ N(0, 1)``, beyond the KL at ``x`` (docs/ALGORITHM.md section 7).
+        policy's curvature along ``v``, ``w`` times the mean KL to p_cur over the states
+        ``x + s v``, ``s ~ N(0, 1)``, beyond the KL at ``x`` (docs/ALGORITHM.md section 7).
+        Off by default: on the Panda it halved the slope error but fitted the values worse and
+        reached no more positions, at twice the S-step's time (docs/HISTORY.md).
     :param sobolev_rows: how many of each minibatch's rows carry the Sobolev term (the
         first ones of a uniform draw, so a uniform subset; at most all ``batch_size``); each
         costs a forward-mode pass.
