@@ -11,7 +11,6 @@ from torch.distributions import MultivariateNormal, kl_divergence
 from lolgps_torch.dynamics import GMMPrior
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy import (
-    Gains,
     GaussianPolicy,
     PolicyConfig,
     distill,
@@ -368,59 +367,3 @@ def test_gain_head_fits_a_high_gain_teacher() -> None:
         distill(policy, batch)
         errors[feedback] = _teacher_sds(policy, batch)
     assert errors[True] < 12.5 < 16.0 < errors[False]
-
-
-@pytest.mark.parametrize("feedback", [True, False])
-def test_unscaled_jvp_matches_finite_differences(feedback: bool) -> None:
-    g = torch.Generator().manual_seed(21)
-    policy = GaussianPolicy(5, 3, PolicyConfig(hidden_sizes=(16, 16), feedback=feedback))
-    with torch.no_grad():
-        policy.gain.weight.normal_(0.0, 0.3, generator=g)
-    z = torch.randn(40, 5, dtype=F64, generator=g)
-    v = torch.randn(30, 5, dtype=F64, generator=g)
-    out, derivative = policy.unscaled_jvp(z, v)
-    assert out.shape == (40, 3) and derivative.shape == (30, 3)
-    assert torch.allclose(out, policy.unscaled(z), rtol=0, atol=1e-14)
-    with torch.no_grad():  # the net is piecewise linear: tiny steps stay on one piece
-        h = 1e-7
-        difference = (policy.unscaled(z[:30] + h * v) - policy.unscaled(z[:30] - h * v)) / (2 * h)
-    assert torch.allclose(derivative, difference, rtol=1e-6, atol=1e-7)
-
-
-def _linear_teacher_rows(M: int, seed: int) -> tuple[DistillBatch, Gains, torch.Tensor]:
-    """A linear teacher ``u = K x + k`` seen at a few clusters of states a few percent of the
-    states' spread wide (as D_g's samples are about its trajectories), and its gain ``K``."""
-    g = torch.Generator().manual_seed(seed)
-    dX, dU = 6, 2
-    K = 3.0 * torch.randn(dU, dX, dtype=F64, generator=g)
-    centres = torch.randn(8, dX, dtype=F64, generator=g)
-    x = centres.repeat(M // 8, 1) + 0.03 * torch.randn(M, dX, dtype=F64, generator=g)
-    mean = x @ K.T + 1.0
-    prec = torch.eye(dU, dtype=F64).expand(M, dU, dU)
-    none = torch.zeros(M, dtype=torch.bool)
-    batch = DistillBatch(x, mean, prec, torch.zeros_like(mean), torch.zeros_like(prec), none)
-    directions = 0.03 * torch.randn(M, dX, dtype=F64, generator=g)
-    gains = Gains(K.expand(M, dU, dX), directions, torch.ones(M, dtype=torch.bool))
-    return batch, gains, K
-
-
-def test_sobolev_term_fits_a_linear_teachers_gain() -> None:
-    """Values at clustered states barely say the teacher's gain (400 Adam steps leave the
-    Jacobian 55% off); the Sobolev term (here along random directions of the clusters' size,
-    weight 100) fits it to about 9%."""
-    batch, gains, K = _linear_teacher_rows(M=400, seed=3)
-    errors = {}
-    for weight in (0.0, 100.0):
-        config = PolicyConfig(hidden_sizes=(32, 32), steps=400, batch_size=64, sobolev=weight)
-        policy = GaussianPolicy(6, 2, config)
-        distill(policy, batch, gains=gains)
-        jacobian = torch.func.vmap(torch.func.jacrev(policy))(batch.x).detach()
-        errors[weight] = float((jacobian - K).norm(dim=(1, 2)).mean() / K.norm())
-    assert errors[100.0] < 0.15 < 0.4 < errors[0.0]
-
-
-def test_distill_rejects_misshapen_gains() -> None:
-    batch, gains, _ = _linear_teacher_rows(M=16, seed=4)
-    policy = GaussianPolicy(6, 2, PolicyConfig(sobolev=1.0))
-    with pytest.raises(LolgpsError, match="gains"):
-        distill(policy, batch, gains=gains._replace(direction=gains.direction[:, :5]))

@@ -23,12 +23,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from lolgps_torch.data import ConditionRecord, ReplayBuffer
-from lolgps_torch.policy import Gains, GaussianPolicy, PolicyConfig, distill
+from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian, Trajectories
-
-DIRECTION_STEP = 1e-3  # central-difference step of state_directions, in spreads
 
 
 class PolicyTeacher(NamedTuple):
@@ -128,42 +126,6 @@ def consistent_states(task: PegTask, x: Tensor, offset: tuple[float, float]) -> 
     return out
 
 
-def state_directions(task: PegTask, x: Tensor) -> Tensor:
-    """Kinematically consistent state directions at D_g's states ``x: [M, T, dX]``: q and
-    q-dot moved along ``spread * n``, ``n ~ N(0, I)`` drawn from a fixed seed, with ``spread``
-    the per-step spread of the M samples, and the points and point velocities following to
-    first order (central differences of :func:`consistent_states`)."""
-    spread = (x - x.mean(0)).std(0, correction=0)
-    gen = torch.Generator().manual_seed(0)
-    step = DIRECTION_STEP * spread * torch.randn(x.shape, generator=gen, dtype=x.dtype).to(x)
-    ahead = consistent_states(task, x + step, (0.0, 0.0))
-    behind = consistent_states(task, x - step, (0.0, 0.0))
-    return (ahead - behind) / (2.0 * DIRECTION_STEP)
-
-
-def teacher_gains(task: PegTask, p: Teacher | None, x: Tensor) -> Gains:
-    """p_cur's gains and :func:`state_directions` at the rows of states ``x: [M, T, dX]``,
-    flattened as :meth:`ConditionSamples.to_batch` flattens them; unknown unless ``p`` is
-    linear-Gaussian."""
-    M, T, dX = x.shape
-    dU = task.layout.dU
-    mask = torch.full((M * T,), isinstance(p, LinearGaussian), dtype=torch.bool, device=x.device)
-    if not isinstance(p, LinearGaussian):
-        return Gains(x.new_zeros(M * T, dU, dX), x.new_zeros(M * T, dX), mask)
-    K = p.K.expand(M, T, dU, dX).reshape(M * T, dU, dX)
-    return Gains(K, state_directions(task, x).reshape(M * T, dX), mask)
-
-
-def no_gains(batch: DistillBatch) -> Gains:
-    """Rows without a Sobolev term."""
-    M, dU, dX = batch.M, batch.mean_cur.shape[1], batch.x.shape[1]
-    known = torch.zeros(M, dtype=torch.bool, device=batch.x.device)
-    return Gains(batch.x.new_zeros(M, dU, dX), batch.x.new_zeros(M, dX), known)
-
-
-Part = tuple[DistillBatch, Gains | None]
-
-
 class Distiller:
     """The S-step with replay: owns nothing but the settings, the replay it reads and the
     rows it has read from it.
@@ -185,8 +147,6 @@ class Distiller:
         self.task, self.config, self.replay = task, config, replay
         self.augment, self.augment_scale = augment, augment_scale
         self._rows: dict[int, DistillBatch] = {}
-        self._records: dict[int, ConditionRecord] = {}
-        self._gains: dict[int, Gains] = {}
 
     def __call__(
         self,
@@ -203,30 +163,24 @@ class Distiller:
             conditions in order, ``R + i`` the ``new`` item ``i``.
         :param config: the S-step's settings (default: the distiller's).
         """
-        config = config or self.config
-        with_gains = config.sobolev > 0.0
         gen = torch.Generator().manual_seed(seed)
-        stored = self._stored(with_gains)
-        parts: list[Part] = []
-        for place, part in enumerate(stored):
-            parts += [part] * (2 if place in emphasis else 1)
+        stored = self._stored()
+        batches = []
+        for place, rows in enumerate(stored):
+            batches += [rows] * (2 if place in emphasis else 1)
         for place, item in enumerate(new, start=len(stored)):
-            gains = teacher_gains(self.task, item.labels.p_cur, item.data.x) if with_gains else None
-            own: list[Part] = [(item.data.to_batch(), gains)]
+            own = [item.data.to_batch()]
             if item.data.x.shape[0] > 1 and self.augment > 0:
-                own.append(self._augmented(item, gen, with_gains))
-            parts += own * (2 if place in emphasis else 1)
-        batch = DistillBatch(*(torch.cat(f) for f in zip(*(b for b, _ in parts), strict=True)))
+                own.append(self._augmented(item, gen))
+            batches += own * (2 if place in emphasis else 1)
+        batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
         if batch.x.shape[0] == 0:
             return []
-        known = [g for _, g in parts if g is not None]
-        gains_all = Gains(*(torch.cat(f) for f in zip(*known, strict=True))) if with_gains else None
-        return distill(policy, batch, config, gen, gains_all)
+        return distill(policy, batch, config or self.config, gen)
 
-    def _stored(self, with_gains: bool) -> list[Part]:
-        """The replay's rows, condition by condition, with p_cur's gains if ``with_gains``;
-        each condition is read from the file once (the replay only grows) and kept, its gains
-        once they are first asked for."""
+    def _stored(self) -> list[DistillBatch]:
+        """The replay's rows, condition by condition; each condition is read from the file
+        once (the replay only grows) and kept."""
         if self.replay is None:
             return []
         conditions = self.replay.conditions()
@@ -234,17 +188,11 @@ class Distiller:
             if index not in self._rows:
                 record = self.replay.read_condition(index, self.task.device)
                 self._rows[index] = record.samples.to_batch()
-                self._records[index] = record
-            if with_gains and index not in self._gains:
-                record = self._records[index]
-                self._gains[index] = teacher_gains(self.task, record.p_cur, record.samples.x)
-        return [(self._rows[i], self._gains[i] if with_gains else None) for i in conditions]
+        return [self._rows[index] for index in conditions]
 
-    def _augmented(self, item: Labelled, gen: torch.Generator, with_gains: bool) -> Part:
+    def _augmented(self, item: Labelled, gen: torch.Generator) -> DistillBatch:
         """``augment`` copies of D_g's states, q and q-dot perturbed by ``augment_scale`` times
-        the per-step spread of the condition's successes, labelled by its controllers (with
-        rows without a Sobolev term if ``with_gains``: the copies already sample the
-        neighbourhood of D_g)."""
+        the per-step spread of the condition's successes, labelled by its controllers."""
         x = item.data.x
         spread = (x - x.mean(0)).std(0)  # [T, dX]
         noise = torch.randn(self.augment, *x.shape, generator=gen, dtype=x.dtype)
@@ -253,8 +201,7 @@ class Distiller:
         aug = ConditionSamples(
             x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0], *targets(x_aug, item.labels)
         )
-        batch = aug.to_batch()
-        return batch, no_gains(batch) if with_gains else None
+        return aug.to_batch()
 
 
 Offsets = list[tuple[float, float]]

@@ -4,10 +4,9 @@ S-step."""
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.linearize import linearize_policy
 from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
-from lolgps_torch.policy.sstep import Gains, distill, kl_loss, optimal_variance
+from lolgps_torch.policy.sstep import distill, kl_loss, optimal_variance
 
 __all__ = [
-    "Gains",
     "GaussianPolicy",
     "PolicyConfig",
     "distill",

@@ -41,18 +41,6 @@ class PolicyConfig:
         scaled targets); the policy itself stays float64. float32 takes a third less time and
         fits as well, but refitting Panda seed 1's stream with it kept 6/8 positions against
         8/8 in float64 (docs/RESULTS.md section 12.1), so float64 stays the default.
-    :param sobolev: weight ``w`` of the Sobolev term, which also fits the policy's derivative
-        along a state direction to p_cur's feedback gain ``K_t`` there (0: off). At a D_g
-        state ``x`` with direction ``v`` (kinematically consistent, of the size of the
-        per-step spread of the condition's samples), each row adds
-        ``w/2 (J(x) v - K_t v)^T P_cur (J(x) v - K_t v)``, ``J = d mu_theta / dx``: up to the
-        policy's curvature along ``v``, ``w`` times the mean KL to p_cur over the states
-        ``x + s v``, ``s ~ N(0, 1)``, beyond the KL at ``x`` (docs/ALGORITHM.md section 7).
-        Off by default: on the Panda it halved the slope error but fitted the values worse and
-        reached no more positions, at twice the S-step's time (docs/HISTORY.md).
-    :param sobolev_rows: how many of each minibatch's rows carry the Sobolev term (the
-        first ones of a uniform draw, so a uniform subset; at most all ``batch_size``); each
-        costs a forward-mode pass.
     """
 
     hidden_sizes: tuple[int, ...] = (42, 42, 42, 42)
@@ -65,8 +53,6 @@ class PolicyConfig:
     num_threads: int | None = 1
     feedback: bool = True
     adam_dtype: AdamDtype = "float64"
-    sobolev: float = 0.0
-    sobolev_rows: int = 128
 
     def __post_init__(self) -> None:
         check_fields(
@@ -81,8 +67,6 @@ class PolicyConfig:
                 "pre_weight": 0.0 <= self.pre_weight < math.inf,
                 "num_threads": self.num_threads is None or self.num_threads >= 1,
                 "adam_dtype": self.adam_dtype in get_args(AdamDtype),
-                "sobolev": 0.0 <= self.sobolev < math.inf,
-                "sobolev_rows": self.sobolev_rows >= 1,
             },
         )
 
@@ -164,35 +148,6 @@ class GaussianPolicy(torch.nn.Module):
         h = self.net[:-1](z)
         gain = self.gain(h).unflatten(-1, (self.dU, self.dX))
         return self.net[-1](h) + (gain * z.unsqueeze(-2)).sum(-1)
-
-    def unscaled_jvp(self, z: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`unscaled` at whitened states ``z: [B, dX]`` and its directional derivatives
-        ``J(z_r) v_r`` at the first ``R`` rows along ``v: [R, dX]``, ``R <= B``: ``[B, dU]``
-        and ``[R, dU]``. Forward mode by hand: each hidden layer maps the states and the
-        tangents in one product (tangents without the bias, masked by the states' ReLU
-        pattern); the gain head's derivative is ``B'(h) v_h z + B(h) v``."""
-        B, R = z.shape[0], v.shape[0]
-        h, tangent = z, v
-        *hidden, last = [m for m in self.net if isinstance(m, torch.nn.Linear)]
-        for layer in hidden:
-            both = torch.nn.functional.linear(torch.cat([h, tangent]), layer.weight)
-            pre = both[:B] + layer.bias
-            active = pre[:R] > 0
-            h, tangent = torch.relu(pre), both[B:] * active
-        if not self.config.feedback:
-            return last(h), torch.nn.functional.linear(tangent, last.weight)
-        weight = torch.cat([last.weight, self.gain.weight])
-        both = torch.nn.functional.linear(torch.cat([h, tangent]), weight)
-        dU = self.dU
-        gain = (both[:B, dU:] + self.gain.bias).unflatten(-1, (dU, self.dX))
-        out = both[:B, :dU] + last.bias + (gain * z.unsqueeze(-2)).sum(-1)
-        gain_tangent = both[B:, dU:].unflatten(-1, (dU, self.dX))
-        derivative = (
-            both[B:, :dU]
-            + (gain_tangent * z[:R].unsqueeze(-2)).sum(-1)
-            + (gain[:R] * v.unsqueeze(-2)).sum(-1)
-        )
-        return out, derivative
 
     def covariance(self) -> Tensor:
         """``Sigma_pi = diag(sigma^2)``, ``[dU, dU]``."""

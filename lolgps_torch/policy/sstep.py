@@ -3,8 +3,7 @@
     pi_theta <- argmin_theta  E_{x in D_g} [ KL(pi_theta(.|x) || p_cur(.|x))
                                              + lambda KL(pi_theta(.|x) || p_pre(.|x)) ]
 
-lambda (``PolicyConfig.pre_weight``) is 1 in the paper. With ``PolicyConfig.sobolev`` the
-policy's state Jacobian is also fitted to p_cur's feedback gains (:class:`Gains`).
+lambda (``PolicyConfig.pre_weight``) is 1 in the paper.
 
 Layout: rows are states flattened over samples and time, ``[M, ...]``.
 """
@@ -14,7 +13,6 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -22,20 +20,6 @@ from torch import Tensor
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
 from lolgps_torch.types import DistillBatch
-
-
-class Gains(NamedTuple):
-    """p_cur's feedback gain ``K_t`` at each row of a :class:`DistillBatch` and a state direction
-    ``v`` there: the policy's derivative along ``v`` is fitted to ``K_t v`` in the Sobolev term
-    (``PolicyConfig.sobolev``).
-
-    K: ``[M, dU, dX]``; direction: ``[M, dX]`` (state units); known: ``[M]`` bool, false where
-    the row carries no Sobolev term (its ``K`` and direction are ignored).
-    """
-
-    K: Tensor
-    direction: Tensor
-    known: Tensor
 
 
 def _check(batch: DistillBatch) -> None:
@@ -193,33 +177,11 @@ def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch, dtype: torch.dtype) -
     return DistillBatch(*(f.to(dtype) if f.is_floating_point() else f for f in scaled))
 
 
-def _sgd_gains(
-    policy: GaussianPolicy, gains: Gains, dtype: torch.dtype
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The Sobolev term's rows in the net's own units, in ``dtype``: the target derivative of
-    the unscaled output ``diag(1/u_scale) K v`` ``[M, dU]``, along the whitened direction
-    ``v / x_std`` ``[M, dX]`` (both zero where unknown), and ``known``."""
-    known = gains.known[:, None]
-    target = torch.where(known, (gains.K @ gains.direction.unsqueeze(-1)).squeeze(-1), 0.0)
-    direction = torch.where(known, gains.direction / policy.x_std, 0.0)
-    return (target / policy.u_scale).to(dtype), direction.to(dtype), gains.known
-
-
-def _sobolev_term(
-    derivative: Tensor, target: Tensor, known: Tensor, prec: Tensor, weight: float
-) -> Tensor:
-    """``w/2`` times the mean over rows of ``r^T P' r``, ``r`` = derivative - target (zero where
-    unknown): the Sobolev term of ``PolicyConfig.sobolev`` in the net's units."""
-    residual = torch.where(known[:, None], derivative - target, 0.0)
-    return 0.5 * weight * _quadratic(residual, prec).mean()
-
-
 def distill(
     policy: GaussianPolicy,
     batch: DistillBatch,
     config: PolicyConfig | None = None,
     generator: torch.Generator | None = None,
-    gains: Gains | None = None,
 ) -> list[float]:
     """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8).
 
@@ -235,27 +197,16 @@ def distill(
     recorded per step is the full KL loss of that minibatch. Marks the policy trained.
     Deterministic for a given ``generator`` state.
 
-    With ``gains`` and ``config.sobolev`` > 0, the first ``config.sobolev_rows`` rows of each
-    minibatch also carry the Sobolev term (``PolicyConfig.sobolev``, along each row's direction),
-    and the loss recorded includes it.
-
     :param policy: the global policy, trained in place.
     :param batch: successful states with their targets (detached here).
     :param config: training settings (default ``policy.config``).
     :param generator: source of the minibatch draws (default: seeded by ``config.seed``).
-    :param gains: p_cur's feedback gains at the rows (None: no Sobolev term).
     :return: minibatch loss per Adam step, ``config.steps`` floats.
     """
     config = config if config is not None else policy.config
     generator = generator if generator is not None else torch.Generator().manual_seed(config.seed)
     _check(batch)
     batch = DistillBatch(*(field.detach() for field in batch))
-    wanted = [(batch.M, policy.dU, policy.dX), (batch.M, policy.dX), (batch.M,)]
-    if gains is not None and [tuple(f.shape) for f in gains] != wanted:
-        got = ", ".join(
-            f"{name} {tuple(f.shape)}" for name, f in zip(gains._fields, gains, strict=True)
-        )
-        raise LolgpsError(f"gains: {got} for {batch.M} rows of {policy.dX} -> {policy.dU}")
     set_statistics(policy, batch, config.pre_weight)
     dtype = getattr(torch, config.adam_dtype)
     draws = torch.randint(batch.M, (config.steps, config.batch_size), generator=generator)
@@ -271,20 +222,9 @@ def distill(
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)
             rows_all = _sgd_rows(policy, batch, dtype)
-            gains_all = None
-            if gains is not None and config.sobolev > 0.0:
-                gains_all = _sgd_gains(policy, gains, dtype)
-        R = min(config.sobolev_rows, config.batch_size)
         for index in draws:
             rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
-            if gains_all is None:
-                loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
-            else:
-                target, v, known = (f.index_select(0, index[:R]) for f in gains_all)
-                mean, derivative = trainee.unscaled_jvp(rows.x, v)
-                loss = _row_quadratics(mean, rows, config.pre_weight).mean() + _sobolev_term(
-                    derivative, target, known, rows.prec_cur[:R], config.sobolev
-                )
+            loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()

@@ -2,7 +2,7 @@
 
     python scripts/research/restream.py --run DIR [--steps N] [--batch-size B] [--lr LR]
                                         [--adam-dtype float32] [--repairs R] [--seed S]
-                                        [--sobolev W] [--sobolev-rows R]
+                                        [--jitter MM]
 
 Local learning is not repeated: condition ``k``'s D_g (its stored samples and controllers)
 is distilled into the policy of the S-step of ``k - 1`` with the replay of ``0 .. k-1``, as
@@ -28,6 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import torch
+from torch import Tensor
 
 from lolgps_torch.cli import run
 from lolgps_torch.data import ConditionRecord, ReplayBuffer
@@ -39,12 +40,14 @@ from lolgps_torch.lolgps.distillation import (
     Distiller,
     Labelled,
     Labels,
-    state_directions,
+    consistent_states,
 )
 from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, policy_distances
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
 from lolgps_torch.task import PegTask
+
+DIRECTION_STEP = 1e-3  # central-difference step of state_directions, in spreads
 
 
 def parse_args() -> argparse.Namespace:
@@ -58,10 +61,6 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--lr", type=float, default=d.policy.learning_rate)
     parser.add_argument("--adam-dtype", choices=("float32", "float64"), default=d.policy.adam_dtype)
     parser.add_argument("--repairs", type=int, default=d.repairs, help="(%(default)s)")
-    parser.add_argument(
-        "--sobolev", type=float, default=d.policy.sobolev, help="PolicyConfig.sobolev"
-    )
-    parser.add_argument("--sobolev-rows", type=int, default=d.policy.sobolev_rows)
     parser.add_argument("--jitter", type=float, default=4.0, help="mm (%(default)s)")
     parser.add_argument(
         "--seed",
@@ -90,8 +89,6 @@ def main() -> None:
         learning_rate=args.lr,
         adam_dtype=adam_dtype,
         seed=seed,
-        sobolev=args.sobolev,
-        sobolev_rows=args.sobolev_rows,
     )
     task = loaded.make_task()
     threshold = task.config.world.success_threshold
@@ -143,6 +140,19 @@ def main() -> None:
         + f"); hole moved {args.jitter:g} mm: reaches "
         + f"{sum(d < threshold for d in jittered)}/{len(jittered)}"
     )
+
+
+def state_directions(task: PegTask, x: Tensor) -> Tensor:
+    """Kinematically consistent state directions at D_g's states ``x: [M, T, dX]``: q and
+    q-dot moved along ``spread * n``, ``n ~ N(0, I)`` drawn from a fixed seed, with ``spread``
+    the per-step spread of the M samples, and the points and point velocities following to
+    first order (central differences of :func:`consistent_states`)."""
+    spread = (x - x.mean(0)).std(0, correction=0)
+    gen = torch.Generator().manual_seed(0)
+    step = DIRECTION_STEP * spread * torch.randn(x.shape, generator=gen, dtype=x.dtype).to(x)
+    ahead = consistent_states(task, x + step, (0.0, 0.0))
+    behind = consistent_states(task, x - step, (0.0, 0.0))
+    return (ahead - behind) / (2.0 * DIRECTION_STEP)
 
 
 def slope_by_window(

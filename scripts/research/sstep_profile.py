@@ -1,12 +1,11 @@
 """Where one stream S-step's time goes, rebuilt from a finished run (paper eq. 8).
 
-    python scripts/research/sstep_profile.py --run DIR [--condition K] [--repeats 2] [--sobolev W]
+    python scripts/research/sstep_profile.py --run DIR [--condition K] [--repeats 2]
 
 The S-step of condition ``K`` (default: the last) is rebuilt as the stream ran it: the
 replay of conditions ``0 .. K-1`` (copied into a temporary replay file), condition ``K``'s D_g
 as the new item labelled by its stored controllers, and the policy checkpointed after
-``K - 1``, with the run's S-step settings (``--sobolev``: with ``PolicyConfig.sobolev`` set;
-the gains and directions are then part of the call). It prints the rows, then the seconds (best of
+``K - 1``, with the run's S-step settings. It prints the rows, then the seconds (best of
 ``--repeats``, CPU time of this process) of each part: reading the replay, the new D_g's
 perturbed copies, the statistics and constant terms, the Adam loop (the whole call less
 those), and one closed-loop check (the policy's noiseless rollouts at the ``K + 1`` positions
@@ -19,7 +18,6 @@ import argparse
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +41,6 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--run", required=True, help="finished run folder")
     parser.add_argument("--condition", type=int, default=None, help="(default: the last)")
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--sobolev", type=float, default=None, help="(default: the run's)")
     return parser.parse_args()
 
 
@@ -74,8 +71,6 @@ def main() -> None:
         else GaussianPolicy(task.layout.dX, task.layout.dU, loaded.policy(0).config)
     )
     config = policy.config
-    if args.sobolev is not None:
-        config = replace(config, sobolev=args.sobolev)
     labels = Labels(record.p_cur, record.p_pre, record.iterations)
     item = Labelled(record.offset, record.samples, labels)
     with tempfile.TemporaryDirectory() as tmp:
@@ -90,7 +85,7 @@ def main() -> None:
             lambda: [replay.read_condition(i).samples.to_batch() for i in replay.conditions()],
             args.repeats,
         )
-        t_aug, (aug, _) = best_seconds(lambda: distiller._augmented(item, gen, False), args.repeats)
+        t_aug, aug = best_seconds(lambda: distiller._augmented(item, gen), args.repeats)
         batch = DistillBatch(
             *(torch.cat(f) for f in zip(*stored, record.samples.to_batch(), aug, strict=True))
         )
