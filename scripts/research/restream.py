@@ -2,6 +2,7 @@
 
     python scripts/research/restream.py --run DIR [--steps N] [--batch-size B] [--lr LR]
                                         [--adam-dtype float32] [--repairs R] [--seed S]
+                                        [--jitter MM]
 
 Local learning is not repeated: condition ``k``'s D_g (its stored samples and controllers)
 is distilled into the policy of the S-step of ``k - 1`` with the replay of ``0 .. k-1``, as
@@ -10,9 +11,12 @@ closed-loop check at the positions learnt so far, ``--repairs`` repair rounds). 
 p_pre are those the original stream's policy gave. Prints, per condition, the positions the
 policy reaches after its S-step, the repair rounds and the CPU seconds of the checked S-step;
 then the final policy's distances at every position and its fit on D_g in teacher standard
-deviations (``scripts/research/precision.py``'s ``fit``), so S-step settings are compared on
-the same data in a minute rather than re-running streams. With the run's own S-step settings
-and seed (the default seed) it repeats the run's S-steps exactly.
+deviations (``scripts/research/precision.py``'s ``fit``), its slope fit (the error of its
+derivative along :func:`state_directions` against p_cur's ``K_t v``, in the same units, per
+window of ten steps) and the positions it reaches with the hole moved by ``--jitter`` mm along
++x, -x, +y and -y, so S-step settings are compared on the same data in a minute rather than
+re-running streams. With the run's own S-step settings and seed (the default seed) it repeats
+the run's S-steps exactly.
 """
 
 from __future__ import annotations
@@ -22,16 +26,28 @@ import tempfile
 import time
 from dataclasses import replace
 
+import torch
+from torch import Tensor
+
 from lolgps_torch.cli import run
-from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data import ConditionRecord, ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
-from lolgps_torch.lolgps.distillation import CheckedSStep, Distiller, Labelled, Labels
+from lolgps_torch.lolgps.distillation import (
+    CheckedSStep,
+    Distiller,
+    Labelled,
+    Labels,
+    consistent_states,
+)
 from lolgps_torch.lolgps.run import load_run
 from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, policy_distances
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
+from lolgps_torch.task import PegTask
+
+DIRECTION_STEP = 1e-3  # central-difference step of state_directions, in spreads
 
 
 def parse_args() -> argparse.Namespace:
@@ -45,6 +61,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--lr", type=float, default=d.policy.learning_rate)
     parser.add_argument("--adam-dtype", choices=("float32", "float64"), default=d.policy.adam_dtype)
     parser.add_argument("--repairs", type=int, default=d.repairs, help="(%(default)s)")
+    parser.add_argument("--jitter", type=float, default=4.0, help="mm (%(default)s)")
     parser.add_argument(
         "--seed",
         type=int,
@@ -103,6 +120,10 @@ def main() -> None:
                     k, record.offset, record.samples, record.iterations, record.p_cur, record.p_pre
                 )
         final = policy_distances(task, policy, offsets)
+        j = args.jitter / 1000.0
+        moved = [(x + a, y + b) for x, y in offsets for a, b in ((j, 0), (-j, 0), (0, j), (0, -j))]
+        jittered = policy_distances(task, policy, moved)
+        slope = slope_by_window(task, policy, loaded.records)
     finally:
         task.close()
     fit = fit_by_window(policy, loaded)
@@ -113,6 +134,42 @@ def main() -> None:
         + " ".join(f"{v:.1f}" for v in fit)
         + f"); S-steps {total:.1f} CPU s"
     )
+    print(
+        f"slope fit {sum(slope) / len(slope):.2f} teacher sd (per 10 steps: "
+        + " ".join(f"{v:.1f}" for v in slope)
+        + f"); hole moved {args.jitter:g} mm: reaches "
+        + f"{sum(d < threshold for d in jittered)}/{len(jittered)}"
+    )
+
+
+def state_directions(task: PegTask, x: Tensor) -> Tensor:
+    """Kinematically consistent state directions at D_g's states ``x: [M, T, dX]``: q and
+    q-dot moved along ``spread * n``, ``n ~ N(0, I)`` drawn from a fixed seed, with ``spread``
+    the per-step spread of the M samples, and the points and point velocities following to
+    first order (central differences of :func:`consistent_states`)."""
+    spread = (x - x.mean(0)).std(0, correction=0)
+    gen = torch.Generator().manual_seed(0)
+    step = DIRECTION_STEP * spread * torch.randn(x.shape, generator=gen, dtype=x.dtype).to(x)
+    ahead = consistent_states(task, x + step, (0.0, 0.0))
+    behind = consistent_states(task, x - step, (0.0, 0.0))
+    return (ahead - behind) / (2.0 * DIRECTION_STEP)
+
+
+def slope_by_window(
+    task: PegTask, policy: GaussianPolicy, records: list[ConditionRecord]
+) -> list[float]:
+    """``sqrt(r^T P_cur r)``, ``r = J(x) v - K_t v`` for the policy's Jacobian ``J`` along
+    :func:`state_directions` ``v`` at every stored state, averaged per window of ten steps."""
+    errors = []
+    for record in records:
+        x, p = record.samples.x, record.p_cur
+        if x.shape[0] == 0 or p is None:
+            continue
+        v = state_directions(task, x)
+        derivative = torch.func.jvp(policy, (x,), (v,))[1]
+        r = (derivative - (p.K @ v.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1)
+        errors.append((r.mT @ record.samples.prec_cur @ r).flatten(-3).sqrt())
+    return [float(w.mean()) for w in torch.cat(errors).mean(0).split(10)]
 
 
 if __name__ == "__main__":
