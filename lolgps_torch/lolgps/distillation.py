@@ -140,6 +140,7 @@ class Distiller:
         self.task, self.config, self.replay = task, config, replay
         self.augment, self.augment_scale = augment, augment_scale
         self._rows: dict[int, DistillBatch] = {}
+        self._teachers: dict[int, Labels | None] = {}
 
     def __call__(
         self,
@@ -148,6 +149,7 @@ class Distiller:
         seed: int,
         emphasis: frozenset[int] = frozenset(),
         config: PolicyConfig | None = None,
+        visited: tuple[Labelled, ...] = (),
     ) -> list[float]:
         """Fit ``policy`` on the ``new`` conditions' D_g with their perturbed copies, plus the
         replay; returns the losses (empty when there is no data).
@@ -155,6 +157,8 @@ class Distiller:
         :param emphasis: conditions whose rows enter twice, by place: ``0 .. R-1`` the replay's
             conditions in order, ``R + i`` the ``new`` item ``i``.
         :param config: the S-step's settings (default: the distiller's).
+        :param visited: states the policy itself visited, labelled by their condition's
+            teachers (DAgger rows), entered with perturbed copies as new D_g is.
         """
         gen = torch.Generator().manual_seed(seed)
         stored = self._stored()
@@ -162,14 +166,28 @@ class Distiller:
         for place, rows in enumerate(stored):
             batches += [rows] * (2 if place in emphasis else 1)
         for place, item in enumerate(new, start=len(stored)):
-            own = [item.data.to_batch()]
-            if item.data.x.shape[0] > 1 and self.augment > 0:
-                own.append(self._augmented(item, gen))
-            batches += own * (2 if place in emphasis else 1)
+            batches += self._with_copies(item, gen) * (2 if place in emphasis else 1)
+        for item in visited:
+            batches += self._with_copies(item, gen)
         batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
         if batch.x.shape[0] == 0:
             return []
         return distill(policy, batch, config or self.config, gen)
+
+    def _with_copies(self, item: Labelled, gen: torch.Generator) -> list[DistillBatch]:
+        """An item's rows and, with ``augment``, their perturbed copies."""
+        own = [item.data.to_batch()]
+        if item.data.x.shape[0] > 1 and self.augment > 0:
+            own.append(self._augmented(item, gen))
+        return own
+
+    def teacher(self, place: int, new: Labelled) -> Labels | None:
+        """The labels of the condition at ``place`` (the replay's, in order, then ``new``);
+        None for a replayed condition the policy taught itself (no stored controller)."""
+        stored = self._stored()
+        if place == len(stored):
+            return new.labels
+        return self._teachers[self.replay.conditions()[place]] if self.replay else None
 
     def _stored(self) -> list[DistillBatch]:
         """The replay's rows, condition by condition; each condition is read from the file
@@ -181,6 +199,11 @@ class Distiller:
             if index not in self._rows:
                 record = self.replay.read_condition(index, self.task.device)
                 self._rows[index] = record.samples.to_batch()
+                self._teachers[index] = (
+                    Labels(record.p_cur, record.p_pre, record.iterations)
+                    if record.p_cur is not None
+                    else None
+                )
         return [self._rows[index] for index in conditions]
 
     def _augmented(self, item: Labelled, gen: torch.Generator) -> DistillBatch:
@@ -199,6 +222,7 @@ class Distiller:
 
 Offsets = list[tuple[float, float]]
 Reach = Callable[[GaussianPolicy, Offsets], list[float]]
+Visit = Callable[[GaussianPolicy, tuple[float, float], int], list[Trajectories]]
 
 
 class Checked(NamedTuple):
@@ -216,17 +240,27 @@ class CheckedSStep:
     After the S-step, the policy's noiseless rollouts run at every position learnt so far
     (``reach``). While one misses (final distance not below ``threshold``), up to ``repairs``
     more rounds of ``steps // 3`` Adam steps run, each from the best policy so far with the
-    missed conditions' rows entering twice; the policy reaching the most positions (then the
-    smallest total distance) is kept.
+    missed conditions' rows entering twice and, with ``visit``, the states of the best
+    policy's own rollouts at each missed position labelled by that position's teachers
+    (DAgger: the teachers' feedback where the policy actually goes); the policy reaching the
+    most positions (then the smallest total distance) is kept.
 
     :param distill: the S-step with replay.
     :param reach: final distances of a policy's noiseless rollouts at the given positions.
     :param threshold: the success distance (m).
     :param repairs: the most repair rounds (0: the S-step alone, as in the paper).
+    :param visit: rollouts of a policy at a position with a seed (None: no DAgger rows).
     """
 
-    def __init__(self, distill: Distiller, reach: Reach, threshold: float, repairs: int) -> None:
-        self.distill, self.reach = distill, reach
+    def __init__(
+        self,
+        distill: Distiller,
+        reach: Reach,
+        threshold: float,
+        repairs: int,
+        visit: Visit | None = None,
+    ) -> None:
+        self.distill, self.reach, self.visit = distill, reach, visit
         self.threshold, self.repairs = threshold, repairs
 
     def __call__(
@@ -246,12 +280,33 @@ class CheckedSStep:
             rounds += 1
             policy.load_state_dict(state)
             missed = frozenset(i for i, d in enumerate(best.distances) if not d < self.threshold)
-            losses = self.distill(policy, [item], seed + 1_000_003 * rounds, missed, repair)
+            visited = self.visited(policy, item, offsets, missed, seed + 7 * rounds)
+            round_seed = seed + 1_000_003 * rounds
+            losses = self.distill(policy, [item], round_seed, missed, repair, visited)
             distances = self.reach(policy, offsets)
             if self.score(distances) > self.score(best.distances):
                 best, state = Checked(losses, distances, 0), copy.deepcopy(policy.state_dict())
         policy.load_state_dict(state)
         return best._replace(rounds=rounds)
+
+    def visited(
+        self,
+        policy: GaussianPolicy,
+        item: Labelled,
+        offsets: Offsets,
+        missed: frozenset[int],
+        seed: int,
+    ) -> tuple[Labelled, ...]:
+        """The policy's own rollouts at the missed positions, labelled by their teachers."""
+        if self.visit is None:
+            return ()
+        out = []
+        for place in sorted(missed):
+            labels = self.distill.teacher(place, item)
+            if labels is not None:
+                kept = self.visit(policy, offsets[place], seed + place)
+                out.append(Labelled(offsets[place], label(self.distill.task, kept, labels), labels))
+        return tuple(out)
 
     def score(self, distances: list[float]) -> tuple[int, float]:
         """Positions reached, then minus the total distance: the larger the better."""

@@ -31,7 +31,7 @@ from typing import Literal, NamedTuple, get_args
 
 import torch
 
-from lolgps_torch.controllers import mix
+from lolgps_torch.controllers import mix, smoothed_noise
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy, save_policy
 from lolgps_torch.data.records import ConditionSummary, DistillRecord, IterationRecord
@@ -45,6 +45,7 @@ from lolgps_torch.lolgps.distillation import (
     Labels,
     PolicyTeacher,
     Teacher,
+    Visit,
     as_controller,
     label,
 )
@@ -81,6 +82,9 @@ class StreamConfig:
     :param transfer_phases: iterations of the policy's own rollouts a rehearsal takes.
     :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0: one S-step, as in the paper).
+    :param repair_visits: rollouts of the policy, with its own noise, at each missed condition
+        before a repair round; their states, labelled by that condition's teachers, join the
+        round (DAgger; 0: none).
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -97,6 +101,7 @@ class StreamConfig:
     transfer: Transfer = "none"
     transfer_phases: int = 3
     repairs: int = 3
+    repair_visits: int = 5
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -120,6 +125,7 @@ class StreamConfig:
                 "augment_scale": 0.0 <= self.augment_scale < float("inf"),
                 "max_iterations": self.max_iterations >= 1,
                 "repairs": self.repairs >= 0,
+                "repair_visits": self.repair_visits >= 0,
                 "transfer_phases": self.transfer_phases >= 1,
                 "seed": self.seed >= 0,
             },
@@ -187,6 +193,7 @@ class StreamLearner:
             lambda policy, offsets: policy_distances(task, policy, offsets),
             self.threshold,
             config.repairs,
+            visits(task, config),
         )
 
     def learn_condition(self, index: int, offset: tuple[float, float]) -> ConditionSummary:
@@ -359,6 +366,22 @@ class StreamLearner:
         if done > 0:
             self.policy = load_policy(self.folder.checkpoint_dir(done - 1), self.task.device)
         return [ConditionSummary.from_json(self.folder.read_entry(i)) for i in range(done)]
+
+
+def visits(task: PegTask, config: StreamConfig) -> Visit | None:
+    """The repair rounds' rollouts of a policy at a position (None without
+    ``repair_visits``): ``repair_visits`` of them with the policy's own noise ``Sigma_pi``,
+    smoothed as the local controllers' is, seeded."""
+    n = config.repair_visits
+    if n == 0:
+        return None
+
+    def visit(policy: GaussianPolicy, offset: tuple[float, float], seed: int) -> list[Trajectories]:
+        generator = torch.Generator().manual_seed(seed)
+        noise = smoothed_noise(n, task.T, task.layout.dU, config.local.noise_smoothing, generator)
+        return [task.sample(policy_actor(policy, noise.to(task.device)), [offset] * n)]
+
+    return visit
 
 
 def condition_seed(config: StreamConfig, index: int) -> int:

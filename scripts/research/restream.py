@@ -2,6 +2,7 @@
 
     python scripts/research/restream.py --run DIR [--steps N] [--batch-size B] [--lr LR]
                                         [--adam-dtype float32] [--repairs R] [--seed S]
+                                        [--repair-visits N]
 
 Local learning is not repeated: condition ``k``'s D_g (its stored samples and controllers)
 is distilled into the policy of the S-step of ``k - 1`` with the replay of ``0 .. k-1``, as
@@ -29,7 +30,7 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
 from lolgps_torch.lolgps.distillation import CheckedSStep, Distiller, Labelled, Labels
 from lolgps_torch.lolgps.run import load_run
-from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, policy_distances
+from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, policy_distances, visits
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
 
@@ -45,6 +46,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--lr", type=float, default=d.policy.learning_rate)
     parser.add_argument("--adam-dtype", choices=("float32", "float64"), default=d.policy.adam_dtype)
     parser.add_argument("--repairs", type=int, default=d.repairs, help="(%(default)s)")
+    parser.add_argument(
+        "--repair-visits", type=int, default=d.repair_visits, help="DAgger rollouts (%(default)s)"
+    )
     parser.add_argument(
         "--seed",
         type=int,
@@ -62,7 +66,12 @@ def main() -> None:
     loaded = load_run(args.run)
     run = loaded.info.stream
     seed = run.seed if args.seed is None else args.seed
-    stream = StreamConfig(augment=run.augment, augment_scale=run.augment_scale, seed=seed)
+    stream = StreamConfig(
+        augment=run.augment,
+        augment_scale=run.augment_scale,
+        seed=seed,
+        repair_visits=args.repair_visits,
+    )
     adam_dtype: AdamDtype = args.adam_dtype
     config = replace(
         stream.policy,
@@ -83,7 +92,11 @@ def main() -> None:
             replay = ReplayBuffer(RunFolder(tmp).replay_path)
             distill = Distiller(task, config, stream.augment, stream.augment_scale, replay)
             sstep = CheckedSStep(
-                distill, lambda p, o: policy_distances(task, p, o), threshold, args.repairs
+                distill,
+                lambda p, o: policy_distances(task, p, o),
+                threshold,
+                args.repairs,
+                visits(task, stream),
             )
             for k, record in enumerate(loaded.records):
                 if record.p_cur is None:
