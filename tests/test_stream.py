@@ -9,6 +9,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
+from typing import NamedTuple
 
 import h5py
 import numpy as np
@@ -19,7 +20,7 @@ from conftest import ScriptRun, ci_stream_command, finish_script, start_script
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
-from lolgps_torch.lolgps.distillation import Checked, CheckedSStep, Labels
+from lolgps_torch.lolgps.distillation import Checked, CheckedSStep, Labelled, Labels, Visit
 from lolgps_torch.lolgps.stream import Outcome, StreamLearner, Successes
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
 from lolgps_torch.types import Trajectories
@@ -165,12 +166,15 @@ class _ScriptedDistiller:
     policy's first bias and records its arguments."""
 
     config = PolicyConfig()
+    task = None
 
     def __init__(self) -> None:
         self.calls: list[tuple[int, frozenset[int], int | None]] = []
+        self.visited: list[tuple[Labelled, ...]] = []
 
-    def __call__(self, policy, new, seed, emphasis=frozenset(), config=None):  # type: ignore[no-untyped-def]
+    def __call__(self, policy, new, seed, emphasis=frozenset(), config=None, visited=()):  # type: ignore[no-untyped-def]
         self.calls.append((seed, emphasis, config.steps if config else None))
+        self.visited.append(visited)
         with torch.no_grad():
             policy.net[0].bias[0] = len(self.calls) - 1
         policy.trained = True
@@ -178,12 +182,12 @@ class _ScriptedDistiller:
 
 
 def _checked(
-    distances: list[list[float]], repairs: int
+    distances: list[list[float]], repairs: int, visit: Visit | None = None
 ) -> tuple[Checked, _ScriptedDistiller, GaussianPolicy]:
     """Run :class:`CheckedSStep` with scripted S-steps and closed-loop distances at the
     replay's position and the new one."""
     distill, scripted, policy = _ScriptedDistiller(), iter(distances), GaussianPolicy(3, 1)
-    sstep = CheckedSStep(distill, lambda *a: next(scripted), 0.06, repairs)  # type: ignore[arg-type]
+    sstep = CheckedSStep(distill, lambda *a: next(scripted), 0.06, repairs, visit)  # type: ignore[arg-type]
     item = SimpleNamespace(offset=(0.01, 0.0))
     checked = sstep(policy, item, [(0.0, 0.0), (0.01, 0.0)], seed=5)  # type: ignore[arg-type]
     return checked, distill, policy
@@ -198,6 +202,46 @@ def test_a_missed_condition_is_repaired_with_its_rows_twice() -> None:
     assert distill.calls == [(5, frozenset(), None), (5 + 1_000_003, frozenset({1}), steps // 3),
                              (5 + 2_000_006, frozenset({1}), steps // 3)]  # fmt: skip
     assert float(policy.net[0].bias[0]) == 2.0  # the round that reached both is kept
+
+
+class _Teacher(NamedTuple):
+    """A teacher whose mean action is its ``place`` everywhere."""
+
+    place: float
+
+    def mean_action(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.full((*x.shape[:-1], 1), self.place, dtype=x.dtype)
+
+    def precision(self) -> torch.Tensor:
+        return torch.eye(1, dtype=torch.float64).expand(4, 1, 1)
+
+
+def test_a_repair_round_learns_where_the_policy_went_labelled_by_the_missed_teachers() -> None:
+    """DAgger rows: before each repair round the best policy so far is rolled out at every
+    missed position (``visit``, seeded by round and place), and its states join the round,
+    labelled by that position's own teachers (the replay's stored controllers, or the new
+    condition's labels)."""
+    seen: list[tuple[float, float, int]] = []
+
+    def visit(policy: GaussianPolicy, offset: tuple[float, float], seed: int) -> list[Trajectories]:
+        seen.append((*offset, seed))
+        x = torch.full((2, 4, 3), offset[0], dtype=torch.float64)
+        return [Trajectories(x, x[..., :1], x[..., 0], x[:, 0, 0], x[:, 0, 0] > 1, x[:, 0])]
+
+    distill = _ScriptedDistiller()
+    distill.teacher = lambda place, new: Labels(_Teacher(place), None, 0)  # type: ignore[attr-defined]
+    scripted = iter([[0.2, 0.3], [0.001, 0.3], [0.001, 0.001]])
+    sstep = CheckedSStep(distill, lambda *a: next(scripted), 0.06, 3, visit)  # type: ignore[arg-type]
+    checked = sstep(GaussianPolicy(3, 1), SimpleNamespace(offset=(0.01, 0.0)), [(0.0, 0.0), (0.01, 0.0)], seed=5)  # type: ignore[arg-type]  # fmt: skip
+    assert checked.rounds == 2 and checked.distances == [0.001, 0.001]
+    assert seen == [(0.0, 0.0, 5 + 7), (0.01, 0.0, 5 + 7 + 1), (0.01, 0.0, 5 + 14 + 1)]
+    first, second, third = distill.visited
+    assert first == () and [v.offset for v in second] == [(0.0, 0.0), (0.01, 0.0)]
+    assert [v.offset for v in third] == [(0.01, 0.0)]  # only the one still missed
+    for item in (*second, *third):
+        place = [(0.0, 0.0), (0.01, 0.0)].index(item.offset)
+        assert item.data.x.shape == (2, 4, 3) and torch.all(item.data.x == item.offset[0])
+        assert torch.all(item.data.mean_cur == place) and not item.data.has_pre.any()
 
 
 def test_without_a_better_round_the_first_policy_is_kept() -> None:
