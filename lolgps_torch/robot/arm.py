@@ -35,7 +35,12 @@ import numpy as np
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.packages import resolve_mesh
-from lolgps_torch.robot.validate import ArmWarning, check_actuated_limit, validate_urdf
+from lolgps_torch.robot.validate import (
+    ArmWarning,
+    check_actuated_limit,
+    check_moved_mass,
+    validate_urdf,
+)
 
 if TYPE_CHECKING:
     import yourdfpy
@@ -199,6 +204,7 @@ def load_arm(
     if not carries_peg:
         axis = _auto_axis(chain, actuated) if peg.axis == "auto" else peg.axis
         text = _attach_peg(text, ee_link, peg, axis)
+    check_moved_mass(text, path)
 
     lims = [_limits(j) for j in actuated]
     arm = ArmSpec(

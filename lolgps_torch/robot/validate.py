@@ -15,9 +15,10 @@ What is checked, each failure a :class:`LolgpsError` naming the file and the ele
   and their limits mean nothing here (published descriptions put placeholders there);
 * inertia: any ``<inertial>`` holds exactly one ``<mass>`` (finite, ``>= 0``) and one
   ``<inertia>`` with six finite entries forming a positive semi-definite matrix (a principal
-  moment of 0 is a thin rod's, and physical).  A *driven* link (the child of a non-fixed
-  joint) must have one, with positive mass.  Links fixed to a driven link may be massless
-  (pybullet_data's Panda has two such links).  Principal moments that break the triangle
+  moment of 0 is a thin rod's, and physical).  A link without ``<inertial>`` is massless (the
+  URDF default), as is one of mass 0, moving or not: once the arm is assembled (joints locked,
+  peg attached) :func:`check_moved_mass` refuses only an actuated joint that moves no mass at
+  all, and warns about the massless links that actuated joints drive.  Principal moments that break the triangle
   inequality ``I1 + I2 >= I3`` cannot belong to a rigid body but simulate well (pybullet_data's
   xArm 6 breaks it by 13 %): they are warned about (:class:`ArmWarning`), as is a driven link
   whose inertia is entirely zero;
@@ -263,12 +264,9 @@ def _check_inertial(
     """Mass and inertia (see the module docstring); returns what is suspect, for a warning.
     The inertia of a link welded to the fixed base never matters: there a matrix that is not
     positive semi-definite is only suspect."""
-    moves = "the link moves with its parent joint"
     inertial = _optional_child(link, "inertial", where)
     if inertial is None:
-        if driven:
-            raise LolgpsError(f"{where}: <inertial> missing ({moves}); add its mass and inertia")
-        return []
+        return []  # massless (the URDF default); see check_moved_mass
     here = f"{where}: <inertial>"
     _check_origin(_optional_child(inertial, "origin", here), here)
     mass = _required_numbers(_child(inertial, "mass", here), "value", here, 1)[0]
@@ -278,8 +276,6 @@ def _check_inertial(
     scale = max(abs(xx), abs(yy), abs(zz))
     if mass < 0:
         raise LolgpsError(f"{where}: mass must not be negative, got {mass}")
-    if driven and mass == 0:
-        raise LolgpsError(f"{where}: mass must be positive ({moves}), got {mass}; give its mass")
     if moments[0] < -1e-9 * scale and static:
         return [f"{name!r} (on the fixed base) inertia is not positive semi-definite"]
     if moments[0] < -1e-9 * scale:
@@ -291,7 +287,7 @@ def _check_inertial(
         return [
             f"{name!r} principal moments break I1 + I2 >= I3 by {moments[2] - moments[0] - moments[1]:.2g}"
         ]
-    if driven and scale == 0:
+    if driven and scale == 0 and mass > 0:
         return [f"{name!r} (driven) has zero inertia"]
     return []
 
@@ -379,3 +375,49 @@ def _numbers(element: ET.Element, attr: str, where: str, count: int) -> tuple[fl
     if element.tag in _BOUNDED and max(abs(v) for v in values) > _LARGEST:
         raise LolgpsError(f"{where}: <{element.tag}> {attr}={text!r} is beyond +-{_LARGEST:g}")
     return values
+
+
+def check_moved_mass(text: str, path: str) -> None:
+    """Each moving joint of the assembled arm's URDF ``text`` (joints locked, peg attached)
+    moves some mass: refuse, naming the joint, one whose whole subtree is massless (its
+    motion would have no inertia); one :class:`ArmWarning` names the massless links that
+    moving joints drive (no ``<inertial>``, the URDF default, or mass 0).
+
+    :param text: the URDF handed to PyBullet and the dynamics model.
+    :param path: the source file, for the messages.
+    """
+    robot = ET.fromstring(text)
+    mass = {}
+    for link in robot.findall("link"):
+        element = link.find("inertial/mass")
+        mass[link.get("name", "")] = (
+            float(element.get("value", "0")) if element is not None else 0.0
+        )
+    children: dict[str, list[str]] = {}
+    moving = []
+    for joint in robot.findall("joint"):
+        parent, child = joint.find("parent"), joint.find("child")
+        if parent is None or child is None:
+            continue
+        children.setdefault(parent.get("link", ""), []).append(child.get("link", ""))
+        if joint.get("type") != "fixed":
+            moving.append((joint.get("name", ""), child.get("link", "")))
+
+    def moved(link: str) -> float:
+        return mass.get(link, 0.0) + sum(moved(c) for c in children.get(link, []))
+
+    for name, child in moving:
+        if moved(child) <= 0:
+            raise LolgpsError(
+                f"{path}: joint {name!r} moves no mass (link {child!r} and every link it "
+                f"carries have no <inertial> or mass 0); add the mass and inertia of {child!r}"
+            )
+    massless = [child for _, child in moving if mass.get(child, 0.0) <= 0]
+    if massless:
+        warnings.warn(
+            f"{path}: link(s) {', '.join(map(repr, massless))} moved by an actuated joint have "
+            f"no <inertial> (or mass 0): taken as massless, the URDF default; the joint still "
+            f"moves the mass it carries.  Add their mass and inertia if they have any",
+            ArmWarning,
+            stacklevel=3,
+        )
