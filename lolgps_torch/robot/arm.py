@@ -204,7 +204,7 @@ def load_arm(
     if not carries_peg:
         axis = _auto_axis(chain, actuated) if peg.axis == "auto" else peg.axis
         text = _attach_peg(text, ee_link, peg, axis)
-    check_moved_mass(text, path)
+    massless = check_moved_mass(text, path)
 
     lims = [_limits(j) for j in actuated]
     arm = ArmSpec(
@@ -224,7 +224,34 @@ def load_arm(
         peg_radius=peg_radius,
         peg_axis=axis,
     )
+    if massless:
+        _check_mass_matrix(arm, massless, path)
     return _with_derived_effort(arm, unknown, path) if unknown else arm
+
+
+def _check_mass_matrix(arm: ArmSpec, massless: Sequence[str], path: str) -> None:
+    """With massless driven links, joints can together make a motion that moves no mass (a
+    massless wrist whose axes align): the mass matrix is then singular and no simulator can
+    integrate the arm.  Checked at q = 0 (where the simulated world starts) and at random
+    poses within the limits, with the inertias PyBullet uses."""
+    import torch
+
+    from lolgps_torch.robot.rigid_body import ArmDynamics  # it imports this module
+
+    lower, upper = np.array(arm.lower), np.array(arm.upper)
+    rng = np.random.default_rng(0)
+    poses = np.vstack([np.zeros(arm.dof), rng.uniform(lower, upper, (8, arm.dof))])
+    M = ArmDynamics(arm, inertia="pybullet").mass_matrix(torch.as_tensor(poses))
+    eig = torch.linalg.eigvalsh(M)
+    singular = eig[:, 0] <= 1e-12 * eig[:, -1].clamp(min=1e-300)
+    if bool(singular.any()):
+        q = poses[int(torch.nonzero(singular)[0, 0])]
+        raise LolgpsError(
+            f"{path}: with link(s) {', '.join(map(repr, massless))} massless (no <inertial> "
+            f"or mass 0) the mass matrix is singular at q = "
+            f"[{', '.join(f'{v:.3g}' for v in q)}] rad (some joint motion moves no mass); "
+            f"add their mass and inertia"
+        )
 
 
 def _with_derived_effort(arm: ArmSpec, unknown: Sequence[str], path: str) -> ArmSpec:

@@ -377,11 +377,11 @@ def _numbers(element: ET.Element, attr: str, where: str, count: int) -> tuple[fl
     return values
 
 
-def check_moved_mass(text: str, path: str) -> None:
+def check_moved_mass(text: str, path: str) -> list[str]:
     """Each moving joint of the assembled arm's URDF ``text`` (joints locked, peg attached)
     moves some mass: refuse, naming the joint, one whose whole subtree is massless (its
     motion would have no inertia); one :class:`ArmWarning` names the massless links that
-    moving joints drive (no ``<inertial>``, the URDF default, or mass 0).
+    moving joints drive (no ``<inertial>``, the URDF default, or mass 0), and is returned.
 
     :param text: the URDF handed to PyBullet and the dynamics model.
     :param path: the source file, for the messages.
@@ -421,3 +421,4 @@ def check_moved_mass(text: str, path: str) -> None:
             ArmWarning,
             stacklevel=3,
         )
+    return massless
