@@ -51,9 +51,9 @@ PUBLISHED = {
 # published descriptions that cannot do the task as published: what their one error line says
 REFUSED = {
     "rtb-rx150": (TROSSEN / "rx150.urdf", "not the start 0.20 m (or half that) above the hole"),
-    "rtb-kr6": (  # its visuals' materials are named "": not what refuses it
+    "rtb-kr6": (  # no <inertial> at all; its visuals' materials are named "": not what refuses it
         ARMS / "kuka_description/kuka_kr6/urdf/kr6r700sixx.urdf",
-        "link 'link_1': <inertial> missing",
+        "the mass matrix is singular at q = [0, 0, 0, 0, 0, 0] rad",
     ),
     "airo-robotiq-2f85": (  # a gripper alone
         ARMS / "airo_models/grippers/robotiq_2f_85/urdf/robotiq_2f_85.urdf",
@@ -330,3 +330,62 @@ def test_the_simulated_arm_has_no_visual_shapes_and_moves_as_with_them(urdf: str
     # without visuals PyBullet shows the peg's collision shape, the only one
     assert len(shapes[0]) == 1 and len(shapes[1]) > 1
     assert all((a == b).all() for a, b in zip(*runs, strict=True))
+
+
+def _without_inertials(text: str, links: tuple[str, ...]) -> str:
+    """``text`` with the ``<inertial>`` of each of ``links`` removed (as text: some published
+    files use XML prefixes they do not declare)."""
+    for name in links:
+        start = text.index(f'<link name="{name}"')
+        end = text.index("</link>", start)
+        link = re.sub(r"<inertial>.*?</inertial>", "", text[start:end], flags=re.DOTALL)
+        text = text[:start] + link + text[end:]
+    return text
+
+
+@pytest.mark.parametrize("how", ["no inertial", "mass 0"])
+def test_massless_last_link_is_warned_about_and_the_arm_runs(tmp_path: Path, how: str) -> None:
+    """A driven link without ``<inertial>`` (Kinova's Gen3 lite publishes its last link so) is
+    massless, the URDF default: its joint still moves the peg, so the arm loads with one
+    warning naming the link, is massless in PyBullet (which alone would put 1 kg there) and
+    runs an iteration."""
+    text = UR5E.read_text()
+    if how == "no inertial":
+        text = _without_inertials(text, ("wrist_3_link",))
+    else:
+        start = text.index('<link name="wrist_3_link">')
+        end = text.index("</link>", start)
+        link = re.sub(r'<mass value="[^"]*"', '<mass value="0"', text[start:end])
+        text = text[:start] + link + text[end:]
+    path = tmp_path / "ur5e.urdf"
+    path.write_text(text)
+    arm, caught = _load_quietly(path)
+    massless = [w for w in caught if "taken as massless" in w]
+    assert len(massless) == 1 and "'wrist_3_link'" in massless[0], caught
+    client = pb.connect(pb.DIRECT)
+    try:
+        (tmp_path / "arm.urdf").write_text(arm.urdf_text)
+        body = pb.loadURDF(str(tmp_path / "arm.urdf"), useFixedBase=True,
+                           flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)  # fmt: skip
+        names = [pb.getJointInfo(body, i, physicsClientId=client)[12].decode()
+                 for i in range(pb.getNumJoints(body, physicsClientId=client))]  # fmt: skip
+        index = names.index("wrist_3_link")
+        assert pb.getDynamicsInfo(body, index, physicsClientId=client)[0] == 0.0
+    finally:
+        pb.disconnect(client)
+    check_published_arm(str(path), 6, "tool0")
+
+
+def test_actuated_joint_that_moves_no_mass_is_one_error_line(tmp_path: Path) -> None:
+    """The KUKA carrying its own peg, with the last link, its flange, the peg and the peg tip
+    all without ``<inertial>``: the last joint would move nothing."""
+    massless = ("iiwa_link_7", "iiwa_link_ee", "peg", "peg_tip")
+    text = _without_inertials(Path("robots/kuka_peg.urdf").read_text(), massless)
+    path = tmp_path / "massless_wrist.urdf"
+    path.write_text(text)
+    proc = _inspect("--urdf", str(path))
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and len(errors) == 1, proc.stderr
+    assert "joint 'iiwa_joint_7' moves no mass" in errors[0]
+    assert "add the mass and inertia of 'iiwa_link_7'" in errors[0]
+    assert "Traceback" not in proc.stderr
