@@ -406,13 +406,13 @@ def check_moved_mass(text: str, path: str) -> list[str]:
     def moved(link: str) -> float:
         return mass.get(link, 0.0) + sum(moved(c) for c in children.get(link, []))
 
-    for name, child in moving:
-        if moved(child) <= 0:
+    for name, driven in moving:
+        if moved(driven) <= 0:
             raise LolgpsError(
-                f"{path}: joint {name!r} moves no mass (link {child!r} and every link it "
-                f"carries have no <inertial> or mass 0); add the mass and inertia of {child!r}"
+                f"{path}: joint {name!r} moves no mass (link {driven!r} and every link it "
+                f"carries have no <inertial> or mass 0); add the mass and inertia of {driven!r}"
             )
-    massless = [child for _, child in moving if mass.get(child, 0.0) <= 0]
+    massless = [driven for _, driven in moving if mass.get(driven, 0.0) <= 0]
     if massless:
         warnings.warn(
             f"{path}: link(s) {', '.join(map(repr, massless))} moved by an actuated joint have "
