@@ -45,13 +45,13 @@ CORPUS = {
     "rtb-wx250s": (str(TROSSEN / "wx250s.urdf"), 6),
     "rtb-wx200": (str(TROSSEN / "wx200.urdf"), 5),
     "rtb-px150": (str(TROSSEN / "px150.urdf"), 5),
-    # no <inertial> anywhere: massless links (warned about) carrying the attached peg
-    "rtb-irb140": (str(ARMS / "abb_irb140_description/urdf/irb140.urdf"), 6),
 }
 # published descriptions that cannot do the task, and the flag or element their error names
 REFUSED = {
     "rtb-px100": (TROSSEN / "px100.urdf", "--peg-length"),
     "rtb-al5d": (ARMS / "lynxmotion_al5d_description/urdf/al5d_robot.urdf", "--peg-length"),
+    # no <inertial> anywhere: a kinematic-only description
+    "rtb-irb140": (ARMS / "abb_irb140_description/urdf/irb140.urdf", "<inertial>"),
 }
 PAPER_STREAM = tuple(default_training_stream(AreaConfig(), 0)[0])
 

@@ -48,12 +48,13 @@ PUBLISHED = {
     "rtb-kr16": (KR16, 6, "tool0"),
     "rtb-kr120": (ARMS / "kuka_description/kuka_kr120/urdf/kr120r2500pro.urdf", 6, "tool0"),
 }
+KR6 = ARMS / "kuka_description/kuka_kr6/urdf/kr6r700sixx.urdf"
 # published descriptions that cannot do the task as published: what their one error line says
 REFUSED = {
     "rtb-rx150": (TROSSEN / "rx150.urdf", "not the start 0.20 m (or half that) above the hole"),
     "rtb-kr6": (  # no <inertial> at all; its visuals' materials are named "": not what refuses it
-        ARMS / "kuka_description/kuka_kr6/urdf/kr6r700sixx.urdf",
-        "the mass matrix is singular at q = [0, 0, 0, 0, 0, 0] rad",
+        KR6,
+        "a kinematic-only description",
     ),
     "airo-robotiq-2f85": (  # a gripper alone
         ARMS / "airo_models/grippers/robotiq_2f_85/urdf/robotiq_2f_85.urdf",
@@ -389,3 +390,22 @@ def test_actuated_joint_that_moves_no_mass_is_one_error_line(tmp_path: Path) -> 
     assert "joint 'iiwa_joint_7' moves no mass" in errors[0]
     assert "add the mass and inertia of 'iiwa_link_7'" in errors[0]
     assert "Traceback" not in proc.stderr
+
+
+def test_massless_wrist_whose_mass_matrix_is_singular_is_one_error_line(tmp_path: Path) -> None:
+    """The KR 6 with masses on its first three links only: its massless wrist's axes align at
+    q = 0, where some joint motion then moves no mass; one error line names the links."""
+    inertial = (
+        '<inertial><mass value="5"/><inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" '
+        'iyz="0"/></inertial>'
+    )
+    text = KR6.read_text()
+    for link in ("link_1", "link_2", "link_3"):
+        text = text.replace(f'<link name="{link}">', f'<link name="{link}">{inertial}', 1)
+    urdf = tmp_path / "kr6_heavy_base.urdf"
+    urdf.write_text(text)
+    proc = _inspect("--urdf", str(urdf))
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and len(errors) == 1, proc.stderr
+    assert "'link_4', 'link_5', 'link_6' massless" in errors[0]
+    assert "the mass matrix is singular at q = [0, 0, 0, 0, 0, 0] rad" in errors[0]

@@ -380,8 +380,11 @@ def _numbers(element: ET.Element, attr: str, where: str, count: int) -> tuple[fl
 def check_moved_mass(text: str, path: str) -> list[str]:
     """Each moving joint of the assembled arm's URDF ``text`` (joints locked, peg attached)
     moves some mass: refuse, naming the joint, one whose whole subtree is massless (its
-    motion would have no inertia); one :class:`ArmWarning` names the massless links that
-    moving joints drive (no ``<inertial>``, the URDF default, or mass 0), and is returned.
+    motion would have no inertia), and refuse a kinematic-only description, in which no link
+    that a moving joint drives has mass (the arm would move as the peg alone: on the IRB 140
+    of rtb-data every local controller diverged, 0/8); one :class:`ArmWarning` names the
+    massless links that moving joints drive (no ``<inertial>``, the URDF default, or mass 0),
+    and is returned.
 
     :param text: the URDF handed to PyBullet and the dynamics model.
     :param path: the source file, for the messages.
@@ -413,6 +416,12 @@ def check_moved_mass(text: str, path: str) -> list[str]:
                 f"carries have no <inertial> or mass 0); add the mass and inertia of {driven!r}"
             )
     massless = [driven for _, driven in moving if mass.get(driven, 0.0) <= 0]
+    if massless and len(massless) == len(moving):
+        raise LolgpsError(
+            f"{path}: no link that the arm's joints move has mass ({', '.join(map(repr, massless))}"
+            f" have no <inertial> or mass 0): a kinematic-only description; add the links' "
+            f"<inertial> (mass and inertia)"
+        )
     if massless:
         warnings.warn(
             f"{path}: link(s) {', '.join(map(repr, massless))} moved by an actuated joint have "
