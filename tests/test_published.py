@@ -86,6 +86,15 @@ def _inspect(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
 
 
+def _one_error_line(urdf: Path) -> str:
+    """``inspect_arm.py``'s one ``error:`` line on ``urdf`` (exit 2, no traceback)."""
+    proc = _inspect("--urdf", str(urdf))
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and len(errors) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    return errors[0]
+
+
 def _load_quietly(path: str | Path, ee_link: str | None = None) -> tuple[ArmSpec, list[str]]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ArmWarning)
@@ -104,10 +113,7 @@ def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
 @pytest.mark.parametrize("name", sorted(REFUSED))
 def test_published_description_that_cannot_do_the_task_gets_one_error_line(name: str) -> None:
     urdf, message = REFUSED[name]
-    proc = _inspect("--urdf", str(urdf))
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    assert proc.returncode == 2 and len(errors) == 1 and message in errors[0], proc.stderr
-    assert "Traceback" not in proc.stderr
+    assert message in _one_error_line(urdf)
 
 
 def test_undeclared_prefixes_are_declared_and_their_extensions_dropped() -> None:
@@ -301,10 +307,7 @@ def test_unknown_torque_limits_are_derived_from_the_arm_with_one_warning_each(
 )
 def test_a_bad_torque_limit_gets_one_error_line(tmp_path: Path, effort: str, message: str) -> None:
     path = _kr16_effort(tmp_path, "joint_a2", f' effort="{effort}"')
-    proc = _inspect("--urdf", str(path))
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    assert proc.returncode == 2 and len(errors) == 1 and message in errors[0], proc.stderr
-    assert "Traceback" not in proc.stderr
+    assert message in _one_error_line(path)
 
 
 @pytest.mark.parametrize(
@@ -384,12 +387,9 @@ def test_actuated_joint_that_moves_no_mass_is_one_error_line(tmp_path: Path) -> 
     text = _without_inertials(Path("robots/kuka_peg.urdf").read_text(), massless)
     path = tmp_path / "massless_wrist.urdf"
     path.write_text(text)
-    proc = _inspect("--urdf", str(path))
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    assert proc.returncode == 2 and len(errors) == 1, proc.stderr
-    assert "joint 'iiwa_joint_7' moves no mass" in errors[0]
-    assert "add the mass and inertia of 'iiwa_link_7'" in errors[0]
-    assert "Traceback" not in proc.stderr
+    error = _one_error_line(path)
+    assert "joint 'iiwa_joint_7' moves no mass" in error
+    assert "add the mass and inertia of 'iiwa_link_7'" in error
 
 
 def test_massless_wrist_whose_mass_matrix_is_singular_is_one_error_line(tmp_path: Path) -> None:
@@ -404,8 +404,6 @@ def test_massless_wrist_whose_mass_matrix_is_singular_is_one_error_line(tmp_path
         text = text.replace(f'<link name="{link}">', f'<link name="{link}">{inertial}', 1)
     urdf = tmp_path / "kr6_heavy_base.urdf"
     urdf.write_text(text)
-    proc = _inspect("--urdf", str(urdf))
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    assert proc.returncode == 2 and len(errors) == 1, proc.stderr
-    assert "'link_4', 'link_5', 'link_6' massless" in errors[0]
-    assert "the mass matrix is singular at q = [0, 0, 0, 0, 0, 0] rad" in errors[0]
+    error = _one_error_line(urdf)
+    assert "'link_4', 'link_5', 'link_6' massless" in error
+    assert "the mass matrix is singular at q = [0, 0, 0, 0, 0, 0] rad" in error
