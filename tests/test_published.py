@@ -10,16 +10,15 @@ from __future__ import annotations
 
 import random
 import re
-import subprocess
-import sys
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from pathlib import Path
 
 import pybullet_data
 import pytest
 import torch
-from conftest import check_published_arm, fk_gap
+from conftest import ScriptRun, check_published_arm, fk_gap
 
 from lolgps_torch.data.run_folder import portable_urdf
 from lolgps_torch.errors import LolgpsError
@@ -81,17 +80,15 @@ JOINT = (
 )
 
 
-def _inspect(*args: str) -> subprocess.CompletedProcess[str]:
-    cmd = [sys.executable, "scripts/inspect_arm.py", *args, "--checks", "1"]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+ScriptRunner = Callable[..., ScriptRun]
 
 
-def _one_error_line(urdf: Path) -> str:
+def _one_error_line(run_script: ScriptRunner, urdf: Path) -> str:
     """``inspect_arm.py``'s one ``error:`` line on ``urdf`` (exit 2, no traceback)."""
-    proc = _inspect("--urdf", str(urdf))
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    assert proc.returncode == 2 and len(errors) == 1, proc.stderr
-    assert "Traceback" not in proc.stderr
+    proc = run_script("scripts/inspect_arm.py", "--urdf", str(urdf), "--checks", "1")
+    errors = [line for line in proc.err.splitlines() if line.startswith("error:")]
+    assert proc.code == 2 and len(errors) == 1, proc.err
+    assert "Traceback" not in proc.err
     return errors[0]
 
 
@@ -111,9 +108,11 @@ def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
 
 
 @pytest.mark.parametrize("name", sorted(REFUSED))
-def test_published_description_that_cannot_do_the_task_gets_one_error_line(name: str) -> None:
+def test_published_description_that_cannot_do_the_task_gets_one_error_line(
+    name: str, run_script: ScriptRunner
+) -> None:
     urdf, message = REFUSED[name]
-    assert message in _one_error_line(urdf)
+    assert message in _one_error_line(run_script, urdf)
 
 
 def test_undeclared_prefixes_are_declared_and_their_extensions_dropped() -> None:
@@ -305,9 +304,11 @@ def test_unknown_torque_limits_are_derived_from_the_arm_with_one_warning_each(
         ("abc", "joint 'joint_a2': <limit> effort='abc' is not a number"),
     ],
 )
-def test_a_bad_torque_limit_gets_one_error_line(tmp_path: Path, effort: str, message: str) -> None:
+def test_a_bad_torque_limit_gets_one_error_line(
+    tmp_path: Path, effort: str, message: str, run_script: ScriptRunner
+) -> None:
     path = _kr16_effort(tmp_path, "joint_a2", f' effort="{effort}"')
-    assert message in _one_error_line(path)
+    assert message in _one_error_line(run_script, path)
 
 
 @pytest.mark.parametrize(
@@ -380,19 +381,23 @@ def test_massless_last_link_is_warned_about_and_the_arm_runs(tmp_path: Path, how
     check_published_arm(str(path), 6, "tool0")
 
 
-def test_actuated_joint_that_moves_no_mass_is_one_error_line(tmp_path: Path) -> None:
+def test_actuated_joint_that_moves_no_mass_is_one_error_line(
+    tmp_path: Path, run_script: ScriptRunner
+) -> None:
     """The KUKA carrying its own peg, with the last link, its flange, the peg and the peg tip
     all without ``<inertial>``: the last joint would move nothing."""
     massless = ("iiwa_link_7", "iiwa_link_ee", "peg", "peg_tip")
     text = _without_inertials(Path("robots/kuka_peg.urdf").read_text(), massless)
     path = tmp_path / "massless_wrist.urdf"
     path.write_text(text)
-    error = _one_error_line(path)
+    error = _one_error_line(run_script, path)
     assert "joint 'iiwa_joint_7' moves no mass" in error
     assert "add the mass and inertia of 'iiwa_link_7'" in error
 
 
-def test_massless_wrist_whose_mass_matrix_is_singular_is_one_error_line(tmp_path: Path) -> None:
+def test_massless_wrist_whose_mass_matrix_is_singular_is_one_error_line(
+    tmp_path: Path, run_script: ScriptRunner
+) -> None:
     """The KR 6 with masses on its first three links only: its massless wrist's axes align at
     q = 0, where some joint motion then moves no mass; one error line names the links."""
     inertial = (
@@ -404,6 +409,6 @@ def test_massless_wrist_whose_mass_matrix_is_singular_is_one_error_line(tmp_path
         text = text.replace(f'<link name="{link}">', f'<link name="{link}">{inertial}', 1)
     urdf = tmp_path / "kr6_heavy_base.urdf"
     urdf.write_text(text)
-    error = _one_error_line(urdf)
+    error = _one_error_line(run_script, urdf)
     assert "'link_4', 'link_5', 'link_6' massless" in error
     assert "the mass matrix is singular at q = [0, 0, 0, 0, 0, 0] rad" in error
