@@ -1,7 +1,7 @@
 """D_g and the S-step over it (docs/ALGORITHM.md sections 7-8).
 
 A condition's D_g is its successful rollouts, each state labelled with the action means and
-precisions of the controllers (p_cur, p_pre) that :func:`label_source` picks. The S-step fits
+precisions of the controllers (p_cur, p_pre) that ``StreamLearner.teacher`` picks. The S-step fits
 the global policy to
 
     sum over conditions m, rows (x, t) of D_g(m):  KL(pi(.|x) || p_cur,t(.|x))
