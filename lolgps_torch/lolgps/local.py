@@ -13,8 +13,8 @@ A step is rejected when its samples cost more on average than those of the last 
 iteration, by more than ``reject_z`` standard errors of the difference of the two means, or
 when one of them costs more than the first iteration's samples did on average (a rollout worse
 than the hold of the start pose has diverged): p_cur returns to the controller that drew the
-accepted samples and the C-step is taken again from the accepted fit with the step size just
-shrunk (a line search on epsilon). A step taken at the smallest multiplier is accepted: its
+accepted samples and the C-step is taken again from the accepted fit with the step size at
+most halved (a line search on epsilon). A step taken at the smallest multiplier is accepted: its
 samples re-measure the cost.
 """
 
@@ -172,9 +172,10 @@ class LocalLearner:
 
         Returns the fit for the C-step: the new one, or, when :func:`step_rejected`, the last
         accepted iteration's fit, with p_cur back at the controller that drew its samples (the
-        step is retried at most half as large). A step taken at the smallest multiplier is accepted whatever its cost: p_cur is then close
-        to the accepted controller, and its samples re-measure that controller's cost (a
-        lucky low draw of the accepted cost would otherwise reject every later step)."""
+        step is retried at most half as large). A step taken at the smallest multiplier is
+        accepted whatever its cost: p_cur is then close to the accepted controller, and its
+        samples re-measure that controller's cost (a lucky low draw of the accepted cost would
+        otherwise reject every later step)."""
         dynamics = self.fitter.update(samples.x, samples.u)
         expansion = self.task.cost.expand(samples.x, samples.u, self.targets)
         fit = Fit(p_act, dynamics, to_quadratic(expansion, samples.x, samples.u))
