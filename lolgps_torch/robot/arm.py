@@ -238,14 +238,16 @@ def _check_mass_matrix(arm: ArmSpec, massless: Sequence[str], path: str) -> None
 
     from lolgps_torch.robot.rigid_body import ArmDynamics  # it imports this module
 
-    lower, upper = np.array(arm.lower), np.array(arm.upper)
-    rng = np.random.default_rng(0)
-    poses = np.vstack([np.zeros(arm.dof), rng.uniform(lower, upper, (8, arm.dof))])
-    M = ArmDynamics(arm, inertia="pybullet").mass_matrix(torch.as_tensor(poses))
+    lower, upper = (torch.tensor(b, dtype=torch.float64) for b in (arm.lower, arm.upper))
+    draw = torch.rand(8, arm.dof, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    poses = torch.cat(
+        [torch.zeros(1, arm.dof, dtype=torch.float64), lower + (upper - lower) * draw]
+    )
+    M = ArmDynamics(arm, inertia="pybullet").mass_matrix(poses)
     eig = torch.linalg.eigvalsh(M)
     singular = eig[:, 0] <= 1e-12 * eig[:, -1].clamp(min=1e-300)
     if bool(singular.any()):
-        q = poses[int(torch.nonzero(singular)[0, 0])]
+        q = poses[int(torch.nonzero(singular)[0, 0])].tolist()
         raise LolgpsError(
             f"{path}: with link(s) {', '.join(map(repr, massless))} massless (no <inertial> "
             f"or mass 0) the mass matrix is singular at q = "
