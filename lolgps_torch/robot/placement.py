@@ -13,8 +13,13 @@ is tried at ``shoulder + (rho R cos a, rho R sin a, -eta R)`` for a grid of frac
 base's +x, nearest first (:func:`_candidates`): first as it is, then shifted by ``-c`` with
 ``c`` the centre of the stream's positions (so that they straddle the spot).  The first mouth
 at which the start pose and every position's hole floor are reachable with the peg pointing
-down, inside the joint limits' margin, is kept.  Nothing but R scales it; an arm placed as
-before (a = 0, the configured fractions, all reachable) gets the same hole and start pose.
+down, inside the joint limits' margin, *and* every floor is reached from the start pose by
+following the peg points along the straight line between them (:func:`follow`), never nearer
+a singular pose than ``dexterity R``, is kept.  The second condition is what a local
+controller can do: it moves the arm continuously from q0 and cannot flip an elbow or a wrist
+to reach a floor that lies only on another inverse-kinematics branch.  Nothing but R scales
+it; an arm placed as before (a = 0, the configured fractions, all reachable on q0's branch)
+gets the same hole and start pose.
 """
 
 from __future__ import annotations
@@ -40,6 +45,9 @@ _REACH_SAMPLES = 4096  # the first of them, for the reach
 _SCREEN = 0.1  # candidates are solved if every target is this near (x reach) a sampled tip
 _VERIFIED = 24  # candidates solved in one IK batch
 _CHUNKS = 4  # batches at most
+_RANK_POSES = 64  # down-pointing poses for the point Jacobian's generic rank
+_PATH_STEPS = 10  # way points of follow's straight line
+_PATH_ITERATIONS = 20  # damped least-squares steps at most per way point
 
 
 @dataclass(frozen=True)
@@ -56,6 +64,12 @@ class PlacementConfig:
     :param limit_margin: fraction of each joint's range kept free at both ends.
     :param positions: the hole offsets (m) the placement must reach (the stream's conditions);
         the nominal position alone when empty.
+    :param dexterity: the least dexterity (:func:`dexterity`) allowed on the way from the start
+        pose to each hole floor, as a fraction of the arm's reach per radian.  Near 0 the arm
+        is at a singular pose (a stretched elbow, aligned wrist axes), where its controllers
+        cannot move the peg in some direction: on a published UR5 every position whose path
+        fell below 0.006 R (0.004-0.007 m/rad) jammed its local controller or its policy, and
+        the positions that learnt had 0.014-0.037 R.
     """
 
     reach_fraction: float = 0.55
@@ -65,6 +79,7 @@ class PlacementConfig:
     ik_tolerance: float = 1e-3
     limit_margin: float = 0.05
     positions: tuple[Position, ...] = ()
+    dexterity: float = 0.01
 
     def __post_init__(self) -> None:
         if not 0.0 < self.reach_fraction < 1.0:
@@ -82,6 +97,8 @@ class PlacementConfig:
             raise LolgpsError(f"IK tolerance must be positive, got {self.ik_tolerance}")
         if not 0.0 <= self.limit_margin < 0.5:
             raise LolgpsError(f"limit margin must be in [0, 0.5), got {self.limit_margin}")
+        if not 0.0 <= self.dexterity < 1.0:
+            raise LolgpsError(f"dexterity must be in [0, 1) reach per radian, got {self.dexterity}")
         positions = tuple((float(p[0]), float(p[1])) for p in self.positions)
         if any(len(p) != 2 for p in self.positions) or not all(
             math.isfinite(v) for p in positions for v in p
@@ -160,6 +177,56 @@ def solve_ik_batch(
     return q[rows, best], err[rows, best]
 
 
+def dexterity(jacobian: Tensor, rank: int) -> Tensor:
+    """How freely the arm moves the peg: the ``rank``-th largest singular value of the point
+    Jacobian ``[..., 6, n]`` (m/rad) -> ``[...]``, ``rank`` being the Jacobian's rank at a
+    generic pose (:func:`generic_rank`).
+
+    Two points a fixed distance apart have at most 5 degrees of freedom (turning about the line
+    through them moves neither), fewer on arms with fewer joints or a wrist that rolls about
+    the peg, so the ``rank``-th singular value is the slowest that joint rates of 1 rad/s move
+    the peg in its worst direction among those the arm has; it is 0 at a singular pose."""
+    return torch.linalg.svdvals(jacobian)[..., rank - 1]
+
+
+def generic_rank(kin: PegKinematics, q: Tensor) -> int:
+    """The point Jacobian's rank at generic poses: its largest numerical rank (singular values
+    above 1e-6 of the largest) over the poses ``q: [P, n]``, at most 5."""
+    values = torch.linalg.svdvals(kin.points_and_jacobian(q)[1])
+    rank = (values > 1e-6 * values[..., :1]).sum(dim=-1)
+    return min(5, int(rank.max()))
+
+
+def follow(
+    kin: PegKinematics, arm: ArmSpec, q0: Tensor, targets: Tensor, margin: float, rank: int
+) -> tuple[Tensor, Tensor]:
+    """Track point targets ``[M, 2, 3]`` from the pose ``q0: [n]`` continuously, as a controller
+    starting there would: the targets move along the straight line from q0's points in
+    :data:`_PATH_STEPS` way points, each reached by damped least squares from the last pose
+    (the steps of :func:`solve_ik_batch` without its mid-range drift).  Returns the point error
+    (m) at the end and the least :func:`dexterity` of ``rank`` on the way, ``[M]`` each."""
+    lo = torch.tensor(arm.lower, dtype=torch.float64, device=kin.device)
+    hi = torch.tensor(arm.upper, dtype=torch.float64, device=kin.device)
+    span = hi - lo
+    eye = torch.eye(arm.dof, dtype=torch.float64, device=kin.device)
+    start = kin.points(q0)  # [2, 3]
+    q = q0.expand(targets.shape[0], -1).clone()
+    least = torch.full((targets.shape[0],), math.inf, dtype=torch.float64, device=kin.device)
+    for step in range(1, _PATH_STEPS + 1):
+        goal = (start + (targets - start) * step / _PATH_STEPS).reshape(-1, 6)
+        for _ in range(_PATH_ITERATIONS):
+            pts, J = kin.points_and_jacobian(q)
+            e = goal - pts.reshape(-1, 6)
+            if bool((e.norm(dim=-1) < 1e-7).all()):
+                break
+            dq = torch.linalg.solve(J.mT @ J + 1e-4 * eye, (J.mT @ e[..., None])[..., 0])
+            dq = dq * (0.2 / dq.norm(dim=-1, keepdim=True).clamp(min=0.2))
+            q = (q + dq).clamp(lo + margin * span, hi - margin * span)
+        least = torch.minimum(least, dexterity(kin.points_and_jacobian(q)[1], rank))
+    error = (targets.reshape(-1, 6) - kin.points(q).reshape(-1, 6)).norm(dim=-1)
+    return error, least
+
+
 def reach(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float]:
     """Shoulder position (second actuated joint's origin at q = 0) and reach from it to the tip.
 
@@ -211,7 +278,6 @@ def place_task(
     shoulder, radius, cloud_q, cloud_tip = _workspace(arm, kin)
     positions = torch.tensor(config.positions or ((0.0, 0.0),), dtype=torch.float64)
     positions = positions.to(kin.device)
-    M = positions.shape[0]
     floor = torch.nn.functional.pad(positions, (0, 1), value=-depth)  # [M, 3] below the mouth
     mouths, start_offsets = _candidates(shoulder, radius, positions, config)  # [C, 3] each
     tips = mouths[:, None] + floor  # [C, M, 3]
@@ -219,10 +285,12 @@ def place_task(
         tips = torch.cat([(mouths + start_offsets)[:, None], tips], dim=1)  # [C, K, 3]
     if cloud_tip.shape[0] == 0:
         raise LolgpsError(_cannot_point_down(arm, radius))
+    rank = generic_rank(kin, cloud_q[:_RANK_POSES])
     gap = torch.cdist(tips.reshape(-1, 3), cloud_tip).min(dim=-1)  # nearest sampled tip
     score = gap.values.reshape(tips.shape[:2]).max(dim=-1).values  # [C]
     near = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
     reached, holes_only = 0, False  # most targets reached; all holes reached but not the start
+    stuck: tuple[list[float], float, float] | None = None  # reachable, not from q0: the worst
     chunks = [[0]] + [near[i : i + _VERIFIED] for i in range(0, len(near), _VERIFIED)]
     for chosen in chunks[: 1 + _CHUNKS]:  # the preferred spot alone first, then in order
         targets = vertical_peg_targets(tips[chosen].reshape(-1, 3), -arm.point_offsets[1][2])
@@ -233,25 +301,80 @@ def place_task(
         ok = (err <= config.ik_tolerance).reshape(len(chosen), -1)
         for row, candidate in enumerate(chosen):
             if bool(ok[row].all()):
-                return _geometry(arm, kin, config, mouths[candidate], start_offsets[candidate])
+                geometry = _geometry(arm, kin, config, mouths[candidate], start_offsets[candidate])
+                floors = mouths[candidate] + floor
+                miss = _unfollowed(arm, kin, config, geometry.q0, floors, (radius, rank))
+                if miss is None:
+                    return geometry
+                stuck = stuck or (positions[miss[0]].tolist(), miss[1], miss[2])
         reached = max(reached, int(ok.sum(dim=-1).max()))
         holes_only = holes_only or (config.q0 is None and bool(ok[:, 1:].all(dim=-1).any()))
-    if reached == 0:
-        raise LolgpsError(_cannot_point_down(arm, radius))
+    raise LolgpsError(
+        _refusal(arm, config, radius, positions, (reached, ok.shape[1]), holes_only, stuck)
+    )
+
+
+def _refusal(
+    arm: ArmSpec,
+    config: PlacementConfig,
+    radius: float,
+    positions: Tensor,
+    reached: tuple[int, int],
+    holes_only: bool,
+    stuck: tuple[list[float], float, float] | None,
+) -> str:
+    """Why no nominal hole fits, for the error: nothing reached; every hole reached but not
+    from the start pose (``stuck``: the worst position, its error and dexterity); the holes
+    but not the start; or at best ``reached = (targets, of)``."""
+    if reached[0] == 0:
+        return _cannot_point_down(arm, radius)
+    if stuck is not None:
+        (dx, dy), error, least = stuck
+        return (
+            f"the hole positions are reachable with the peg pointing down, but not all from the "
+            f"start pose without passing a singular pose: at ({dx:+.3f}, {dy:+.3f}) m the peg "
+            f"ends {1000 * error:.0f} mm short and the arm's dexterity falls to "
+            f"{least / radius:.3f} of its reach per radian (at least {config.dexterity} is "
+            f"needed): use closer positions (--conditions, --stream) or give the start pose (--q0)"
+        )
     if holes_only:
-        raise LolgpsError(
+        return (
             f"no start pose: the hole positions are reachable with the peg pointing down, but "
             f"not the start {config.start_offset[2]:.2f} m (or half that) above the hole within "
             f"this arm's reach ({radius:.2f} m): use a shorter peg (--peg-length) or give the "
             f"start pose (--q0)"
         )
     spread = float((positions.max(dim=0).values - positions.min(dim=0).values).norm())
-    raise LolgpsError(
-        f"the {M} hole positions (spread {spread:.2f} m) and the start pose do not fit in the "
-        f"reach of this arm ({radius:.2f} m) with the peg pointing down: at best {reached} of "
-        f"{ok.shape[1]} reachable; use closer positions (--conditions, --stream) or a shorter "
-        f"peg (--peg-length)"
+    return (
+        f"the {positions.shape[0]} hole positions (spread {spread:.2f} m) and the start pose do "
+        f"not fit in the reach of this arm ({radius:.2f} m) with the peg pointing down: at best "
+        f"{reached[0]} of {reached[1]} reachable; use closer positions (--conditions, --stream) "
+        f"or a shorter peg (--peg-length)"
     )
+
+
+def _unfollowed(
+    arm: ArmSpec,
+    kin: PegKinematics,
+    config: PlacementConfig,
+    q0: tuple[float, ...],
+    floors: Tensor,
+    scale: tuple[float, int],
+) -> tuple[int, float, float] | None:
+    """None if :func:`follow` reaches every hole floor ``[M, 3]`` from ``q0`` within the IK
+    tolerance, its dexterity never below ``config.dexterity`` times the reach; else the worst
+    position's index, its point error (m) and its least dexterity (m/rad): the farthest short
+    if one is short, else the least dexterous.  ``scale``: the reach (m) and the Jacobian's
+    generic rank."""
+    radius, rank = scale
+    start = torch.tensor(q0, dtype=torch.float64, device=kin.device)
+    holes = vertical_peg_targets(floors, -arm.point_offsets[1][2])
+    error, least = follow(kin, arm, start, holes, config.limit_margin, rank)
+    far = error > config.ik_tolerance
+    if not bool((far | (least < config.dexterity * radius)).any()):
+        return None
+    worst = int(error.argmax() if bool(far.any()) else least.argmin())
+    return worst, float(error[worst]), float(least[worst])
 
 
 def _geometry(
