@@ -231,7 +231,13 @@ def check_published_arm(urdf: str, dof: int, ee_link: str | None = None) -> None
 
     from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
     from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
-    from lolgps_torch.robot.placement import PlacementConfig, solve_ik_batch
+    from lolgps_torch.robot.placement import (
+        PlacementConfig,
+        follow,
+        generic_rank,
+        reach,
+        solve_ik_batch,
+    )
     from lolgps_torch.robot.validate import ArmWarning
     from lolgps_torch.sim.world import WorldConfig
     from lolgps_torch.task import PegTask, TaskConfig
@@ -248,6 +254,13 @@ def check_published_arm(urdf: str, dof: int, ee_link: str | None = None) -> None
         assert fk_gap(task) < 1e-6
         _, error = solve_ik_batch(task.kinematics, task.arm, task.targets(list(stream)), margin=0.0)
         assert float(error.max()) <= placement.ik_tolerance
+        # and from the start pose, continuously, as a controller would move (placement.follow)
+        rank = generic_rank(task.kinematics, task.q0 + 0.1 * torch.randn(8, task.arm.dof))
+        error, least = follow(
+            task.kinematics, task.arm, task.q0, task.targets(list(stream)), 0.0, rank
+        )
+        assert float(error.max()) <= placement.ik_tolerance
+        assert float(least.min()) >= placement.dexterity * reach(task.arm, task.kinematics)[1]
         learner = LocalLearner(task, stream[0], LocalConfig(samples=2), seed=0)
         samples, _, record = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
         assert torch.isfinite(samples.cost).all() and np.isfinite(record.mean_cost)

@@ -14,7 +14,15 @@ from lolgps_torch.cost.l12 import CostConfig, PegCost, to_quadratic
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
-from lolgps_torch.robot.placement import solve_ik
+from lolgps_torch.robot.placement import (
+    PlacementConfig,
+    follow,
+    generic_rank,
+    place_task,
+    reach,
+    solve_ik,
+    vertical_peg_targets,
+)
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.sim.world import PegWorld
 from lolgps_torch.task import PegTask, TaskConfig
@@ -53,6 +61,32 @@ def test_an_offset_out_of_reach_is_named(task: PegTask) -> None:
     task.check_reachable((0.02, -0.02))
     with pytest.raises(LolgpsError, match=r"^hole offset \(\+2\.000, \+0\.000\) m is out of the"):
         task.check_reachable((2.0, 0.0))
+
+
+def test_follow_reaches_every_floor_from_q0_and_stops_short_beyond_reach(task: PegTask) -> None:
+    kin, arm = task.kinematics, task.arm
+    floors = task.targets([(0.02, -0.02), (-0.02, 0.02)])
+    _, radius = reach(arm, kin)
+    error, least = follow(kin, arm, task.q0, floors, 0.05, 5)
+    assert float(error.max()) < 1e-6
+    assert float(least.min()) > 0.01 * radius
+    beyond = vertical_peg_targets(
+        torch.tensor([[2.0 * radius, 0.0, 0.0]], dtype=torch.float64), 0.15
+    )
+    error, least = follow(kin, arm, task.q0, beyond, 0.05, 5)
+    assert float(error[0]) > 0.5  # the arm stretches towards it and stops
+    assert float(least[0]) < 0.01 * radius  # stretched: near a singular pose
+
+
+def test_generic_rank_is_five_for_a_seven_joint_arm(task: PegTask) -> None:
+    q = task.q0 + 0.3 * torch.randn(8, 7, dtype=torch.float64, generator=torch.Generator())
+    assert generic_rank(task.kinematics, q) == 5
+
+
+def test_a_stream_reachable_only_through_a_singular_pose_is_one_error(task: PegTask) -> None:
+    config = PlacementConfig(positions=((0.02, -0.02),), dexterity=0.9)
+    with pytest.raises(LolgpsError, match=r"not all from the start pose without passing a singul"):
+        place_task(task.arm, task.kinematics, config, task.config.world.depth)
 
 
 def test_jacobian_matches_finite_differences(task: PegTask) -> None:
