@@ -204,7 +204,8 @@ def test_leading_dimensions_and_gradients() -> None:
 def test_inverse_dynamics_derivatives_match_autograd(name: str) -> None:
     """The analytic dtau/dq, dtau/dqd and M of the RNEA with Bullet's link damping as the
     external wrench equal the autograd Jacobians of ``inverse_dynamics_at`` (revolute,
-    prismatic, fixed and locked joints)."""
+    prismatic, fixed and locked joints); ``forward_dynamics_derivatives`` solves the same qdd
+    and gives the same derivatives there."""
     arm = load_arm(ARMS["kuka"]) if name == "kuka" else _slider_arm()
     dyn = ArmDynamics(arm, locked={"grip": 0.03})
     q, qd, qdd = (torch.as_tensor(a) for a in _random_states(arm, 3, seed=8))
@@ -214,9 +215,14 @@ def test_inverse_dynamics_derivatives_match_autograd(name: str) -> None:
         return dyn.inverse_dynamics_at(frames, qd, qdd, dyn.link_damping(frames, qd, 0.3, 0.2))
 
     frames = dyn.frames(q)
-    D = dyn.link_damping_jacobian(frames, qd, 0.3, 0.2)
-    wrench = dyn.link_damping(frames, qd, 0.3, 0.2)
+    wrench, D = dyn.link_damping_with_jacobian(frames, qd, 0.3, 0.2)
+    torch.testing.assert_close(wrench, dyn.link_damping(frames, qd, 0.3, 0.2))
     derivatives = dyn.inverse_dynamics_derivatives(frames, qd, qdd, wrench, D)
+    tau_q = dyn.inverse_dynamics_at(frames, qd, qdd, wrench)
+    solved, *at_solved = dyn.forward_dynamics_derivatives(frames, qd, tau_q, wrench, D)
+    torch.testing.assert_close(solved, qdd, rtol=1e-10, atol=1e-10)
+    for got, want in zip(at_solved, derivatives, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
     for i in range(len(q)):
         expected = torch.autograd.functional.jacobian(tau, (q[i], qd[i], qdd[i]))
         for got, want in zip(derivatives, expected, strict=True):

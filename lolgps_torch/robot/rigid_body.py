@@ -350,31 +350,64 @@ class ArmDynamics:
             which must move rigidly with their bodies (frame-invariant laws, as Bullet's damping)
             and depend on q and qd only through the poses and ``V_i``.
         :param wrench_jacobian: ``D_i = dw_i / dV_i: [..., n, 6, 6]`` at fixed poses
-            (:meth:`link_damping_jacobian`), or None for wrenches independent of velocity.
+            (:meth:`link_damping_with_jacobian`), or None for wrenches independent of velocity.
         """
+        _, dq, dqd, M = self._derivatives(frames, qd, qdd, None, wrench, wrench_jacobian)
+        return dq, dqd, M
+
+    def forward_dynamics_derivatives(
+        self,
+        frames: Frames,
+        qd: Tensor,
+        tau: Tensor,
+        wrench: Tensor | None = None,
+        wrench_jacobian: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``qdd`` of :meth:`forward_dynamics_at` and, at it, the derivatives ``dtau/dq``,
+        ``dtau/dqd`` and ``M`` of :meth:`inverse_dynamics_derivatives`, from one pass over the
+        chain; with them ``dqdd = M^{-1} (dtau - dtau/dq dq - dtau/dqd dqd)``."""
+        qdd, dq, dqd, M = self._derivatives(frames, qd, None, tau, wrench, wrench_jacobian)
+        return qdd, dq, dqd, M
+
+    def _derivatives(
+        self,
+        frames: Frames,
+        qd: Tensor,
+        qdd: Tensor | None,
+        tau: Tensor | None,
+        wrench: Tensor | None,
+        wrench_jacobian: Tensor | None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:meth:`inverse_dynamics_derivatives` at ``qdd``, or with ``qdd`` solved from ``tau``."""
         S = self.motion_subspace(frames)
         m, h, J = self.world_inertia(frames)
         Sqd = S * qd[..., None]  # [..., n, 6]
         V = torch.cumsum(Sqd, -2)
         A0 = S.new_zeros(6)
         A0[5] = self.gravity
-        a = S * qdd[..., None] + _cross_motion(V, Sqd)
+        inertia = _inertia_matrix(m, h, J)  # [..., n, 6, 6]
+        Ic = _below(inertia, -3)
+        alpha = _mv(Ic, S)  # [..., j, 6]
+        M = torch.triu(S @ alpha.mT)
+        M = M + torch.triu(M, 1).mT
+        IV = _mv(inertia, V)
+        f_velocity = _cross_force(V, IV) if wrench is None else _cross_force(V, IV) - wrench
+        product = _cross_motion(V, Sqd)
+        if qdd is None:  # the RNEA at qdd = 0 is the bias c + g - tau_ext
+            assert tau is not None
+            bias = _mv(inertia, A0 + torch.cumsum(product, -2)) + f_velocity
+            qdd = torch.linalg.solve(M, tau - (S * _below(bias, -2)).sum(-1))
+        a = S * qdd[..., None] + product
         A = A0 + torch.cumsum(a, -2)
         V_prev, A_prev = V - Sqd, A - a  # V'_k, A'_k
-        inertia = _inertia_matrix(m, h, J)  # [..., n, 6, 6]
-        IV = _mv(inertia, V)
-        f = _mv(inertia, A) + _cross_force(V, IV)
+        f = _mv(inertia, A) + f_velocity
         X = inertia @ _motion_cross_matrix(V)  # I_i V_i x; V_i x* I_i = -X^T
         Y = -(X + X.mT)
-        if wrench is not None:
-            f = f - wrench
         if wrench_jacobian is not None:
             Y = Y - wrench_jacobian
-        F, IVc = _below(f, -2), _below(IV, -2)
-        Ic, Yc = _below(inertia, -3), _below(Y, -3)
+        F, IVc, Yc = _below(f, -2), _below(IV, -2), _below(Y, -3)
         c = -_cross_motion(S, V_prev)
         e = -_cross_motion(c, V_prev) - _cross_motion(S, A_prev)
-        alpha = _mv(Ic, S)  # [..., j, 6]
         beta = _mv(Yc.mT, S) - _cross_force(S, IVc)
         gamma_q = _mv(Ic, e) + _mv(Yc, c) + _cross_force(c, IVc) + _cross_force(S, F)  # [..., k, 6]
         gamma_qd = _mv(Yc, S) + 2 * _mv(Ic, c) + _cross_force(S, IVc)
@@ -382,8 +415,7 @@ class ArmDynamics:
         after = torch.triu(ones)  # [k, j]: j >= k
         dq = torch.where(after, e @ alpha.mT + c @ beta.mT, gamma_q @ S.mT)  # [..., k, j]
         dqd = torch.where(after, S @ beta.mT + 2 * c @ alpha.mT, gamma_qd @ S.mT)
-        M = torch.triu(S @ alpha.mT)
-        return dq.mT, dqd.mT, M + torch.triu(M, 1).mT
+        return qdd, dq.mT, dqd.mT, M
 
     def mass_matrix(self, q: Tensor) -> Tensor:
         """``M(q): [..., n, n]`` by the composite-rigid-body algorithm."""
@@ -435,12 +467,12 @@ class ArmDynamics:
         moment = -angular * (1 + _norm(omega)) * I_omega + _cross(com, force)
         return self._to_bodies(torch.cat([moment, force], -1), "...si,sb->...bi")
 
-    def link_damping_jacobian(
+    def link_damping_with_jacobian(
         self, frames: Frames, qd: Tensor, linear: float, angular: float
-    ) -> Tensor:
-        """``D_b = dw_b / dV_b: [..., n, 6, 6]``, the derivative of :meth:`link_damping`'s wrench
-        on body b with respect to the body's spatial velocity ``V_b = (omega, v_O)`` at fixed
-        poses. Per link, with ``K_v = -linear m ((1 + |v|) 1 + v v^T / |v|)``,
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`link_damping`'s wrenches ``w_b`` and ``D_b = dw_b / dV_b: [..., n, 6, 6]``,
+        their derivative with respect to the body's spatial velocity ``V_b = (omega, v_O)`` at
+        fixed poses. Per link, with ``K_v = -linear m ((1 + |v|) 1 + v v^T / |v|)``,
         ``K_w = -angular ((1 + |omega|) I + I omega omega^T / |omega|)`` and ``C = [com]x``
         (``v = v_O - C omega``):
 
@@ -449,16 +481,20 @@ class ArmDynamics:
         omega, v, com, R = self._link_motion(frames, qd)
         I_world = _mm(_mm(R, self.body.link_inertia), R.mT)
         eye = torch.eye(3, dtype=qd.dtype, device=qd.device)
-        speed, spin = _norm(v)[..., None], _norm(omega)[..., None]  # [..., S, 1, 1]
+        speed, spin = _norm(v), _norm(omega)  # [..., S, 1]
+        I_omega = _mv(I_world, omega)
+        force = -linear * (1 + speed) * self.body.link_mass[:, None] * v
+        moment = -angular * (1 + spin) * I_omega + _cross(com, force)
+        speed, spin = speed[..., None], spin[..., None]
         K_v = (-linear * self.body.link_mass[:, None, None]) * (
             (1 + speed) * eye + v[..., :, None] * v[..., None, :] / speed
         )
-        I_omega = _mv(I_world, omega)
         K_w = -angular * ((1 + spin) * I_world + I_omega[..., :, None] * omega[..., None, :] / spin)
         C = _skew(com)
         K_v_C = K_v @ C
         D = torch.cat([torch.cat([K_w - C @ K_v_C, C @ K_v], -1), torch.cat([-K_v_C, K_v], -1)], -2)
-        return self._to_bodies(D, "...sij,sb->...bij")
+        wrench = self._to_bodies(torch.cat([moment, force], -1), "...si,sb->...bi")
+        return wrench, self._to_bodies(D, "...sij,sb->...bij")
 
     def _link_motion(self, frames: Frames, qd: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Per link: angular velocity, COM velocity, COM position ``[..., S, 3]`` and the

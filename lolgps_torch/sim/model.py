@@ -33,6 +33,7 @@ from lolgps_torch.state import StateLayout
 
 # btMultiBody's default linear and angular damping, which PyBullet does not change.
 BULLET_LINK_DAMPING = 0.04
+LINK_DAMPING = (BULLET_LINK_DAMPING, BULLET_LINK_DAMPING)  # (linear, angular)
 
 
 class ControlStep:
@@ -119,14 +120,16 @@ class ControlStep:
         for s in range(self.config.substeps):
             if s > 0:
                 frames = dyn.frames(q)
-            wrench = dyn.link_damping(frames, qd, BULLET_LINK_DAMPING, BULLET_LINK_DAMPING)
-            qdd = dyn.forward_dynamics_at(frames, qd, tau - dyn.joint_damping * qd, wrench)
+            held = tau - dyn.joint_damping * qd
             if jacobian:
-                D = dyn.link_damping_jacobian(frames, qd, BULLET_LINK_DAMPING, BULLET_LINK_DAMPING)
-                id_q, id_qd, M = dyn.inverse_dynamics_derivatives(frames, qd, qdd, wrench, D)
+                wrench, D = dyn.link_damping_with_jacobian(frames, qd, *LINK_DAMPING)
+                qdd, id_q, id_qd, M = dyn.forward_dynamics_derivatives(frames, qd, held, wrench, D)
                 rhs = d_tau - id_q @ d_q - (id_qd + damping) @ d_qd
                 d_qd = d_qd + self.h * torch.linalg.solve(M, rhs)
                 d_q = d_q + self.h * d_qd
+            else:
+                wrench = dyn.link_damping(frames, qd, *LINK_DAMPING)
+                qdd = dyn.forward_dynamics_at(frames, qd, held, wrench)
             qd = qd + self.h * qdd
             q = q + self.h * qd
         frames = dyn.frames(q)
