@@ -164,14 +164,19 @@ PRISMATIC_ARM = """<?xml version="1.0"?>
 """
 
 
-def test_prismatic_fixed_and_locked_joints_match_pinocchio() -> None:
-    """A chain with a prismatic joint, a fixed joint merged into its parent, a continuous joint,
-    and a locked prismatic finger held away from 0."""
-    arm = ArmSpec(urdf_text=PRISMATIC_ARM, source_path="slider.urdf", source_sha256="",
+def _slider_arm() -> ArmSpec:
+    """:data:`PRISMATIC_ARM` with its lift, shoulder and elbow actuated."""
+    return ArmSpec(urdf_text=PRISMATIC_ARM, source_path="slider.urdf", source_sha256="",
                   root_link="base", ee_link="tip", point_link="tip", peg_link="tip",
                   joint_names=("lift", "shoulder", "elbow"), lower=(-0.5, -2.0, -3.0),
                   upper=(0.5, 2.0, 3.0), effort=(100.0, 50.0, 20.0), velocity=(1.0, 2.0, 2.0),
                   point_offsets=((0.0, 0.0, 0.0), (0.0, 0.0, -0.1)), peg_radius=0.01)  # fmt: skip
+
+
+def test_prismatic_fixed_and_locked_joints_match_pinocchio() -> None:
+    """A chain with a prismatic joint, a fixed joint merged into its parent, a continuous joint,
+    and a locked prismatic finger held away from 0."""
+    arm = _slider_arm()
     locked = {"grip": 0.03}
     _check_against_pinocchio(ArmDynamics(arm, locked=locked), arm, locked)
 
@@ -193,6 +198,35 @@ def test_leading_dimensions_and_gradients() -> None:
     inputs = tuple(a[:2].clone().requires_grad_() for a in (q, qd, tau))
     assert torch.autograd.gradcheck(dyn.forward_dynamics, inputs)
     assert torch.autograd.gradcheck(dyn.inverse_dynamics, inputs)
+
+
+@pytest.mark.parametrize("name", ["kuka", "slider"])
+def test_inverse_dynamics_derivatives_match_autograd(name: str) -> None:
+    """The analytic dtau/dq, dtau/dqd and M of the RNEA with Bullet's link damping as the
+    external wrench equal the autograd Jacobians of ``inverse_dynamics_at`` (revolute,
+    prismatic, fixed and locked joints); ``forward_dynamics_derivatives`` solves the same qdd
+    and gives the same derivatives there."""
+    arm = load_arm(ARMS["kuka"]) if name == "kuka" else _slider_arm()
+    dyn = ArmDynamics(arm, locked={"grip": 0.03})
+    q, qd, qdd = (torch.as_tensor(a) for a in _random_states(arm, 3, seed=8))
+
+    def tau(q: torch.Tensor, qd: torch.Tensor, qdd: torch.Tensor) -> torch.Tensor:
+        frames = dyn.frames(q)
+        return dyn.inverse_dynamics_at(frames, qd, qdd, dyn.link_damping(frames, qd, 0.3, 0.2))
+
+    frames = dyn.frames(q)
+    wrench, D = dyn.link_damping_with_jacobian(frames, qd, 0.3, 0.2)
+    torch.testing.assert_close(wrench, dyn.link_damping(frames, qd, 0.3, 0.2))
+    derivatives = dyn.inverse_dynamics_derivatives(frames, qd, qdd, wrench, D)
+    tau_q = dyn.inverse_dynamics_at(frames, qd, qdd, wrench)
+    solved, *at_solved = dyn.forward_dynamics_derivatives(frames, qd, tau_q, wrench, D)
+    torch.testing.assert_close(solved, qdd, rtol=1e-10, atol=1e-10)
+    for got, want in zip(at_solved, derivatives, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
+    for i in range(len(q)):
+        expected = torch.autograd.functional.jacobian(tau, (q[i], qd[i], qdd[i]))
+        for got, want in zip(derivatives, expected, strict=True):
+            assert _relative(got[i].numpy(), want.numpy()) < 1e-12
 
 
 def _smooth_torques(arm: ArmSpec, world: PegWorld, rng: np.random.Generator, steps: int):
@@ -251,20 +285,33 @@ def test_control_step_gradients_match_finite_differences() -> None:
     q, qd, u = (torch.as_tensor(a) for a in _random_states(arm, 1, seed=5))
     x = torch.cat([q, 0.3 * qd, torch.as_tensor(rng.normal(size=(1, 12)))], -1)
     assert torch.autograd.gradcheck(step, (x.requires_grad_(), (2 * u).requires_grad_()))
+    # the analytic linearisation against central differences of f, column by column
+    x, u = x.detach(), 2 * u
+    F, _ = step.linearize(x, u)
+    xu, eps = torch.cat([x, u], -1)[0], 1e-6
+    for col in range(xu.shape[0]):
+        plus, minus = xu.clone(), xu.clone()
+        plus[col] += eps
+        minus[col] -= eps
+        dX = x.shape[-1]
+        central = (step(plus[:dX], plus[dX:]) - step(minus[:dX], minus[dX:])) / (2 * eps)
+        torch.testing.assert_close(F[0, :, col], central, rtol=1e-6, atol=1e-6)
 
 
-def test_linearize_is_the_jacobian_of_the_step() -> None:
-    """``ControlStep.linearize`` (Jacobian over q, qd, u, point columns filled in) equals the
-    full autograd Jacobian of f, and ``F [x; u] + f0 = f(x, u)``."""
-    arm = load_arm(ARMS["kuka"])
-    step = ControlStep(arm, WorldConfig(substeps=2))
-    q, qd, u = (torch.as_tensor(a) for a in _random_states(arm, 2, seed=6))
+def test_linearize_is_the_jacobian_of_the_step(arm: ArmSpec) -> None:
+    """``ControlStep.linearize`` (analytic Jacobian over q, qd, u, point columns filled in)
+    equals the reverse-mode autograd Jacobian of f to 1e-9 relative, with one joint's torque
+    at its effort limit, and ``F [x; u] + f0 = f(x, u)``."""
+    step = ControlStep(arm, WorldConfig())
+    q, qd, u = (torch.as_tensor(a) for a in _random_states(arm, 3, seed=6))
     rng = np.random.default_rng(7)
-    x = torch.cat([q, 0.3 * qd, torch.as_tensor(rng.normal(size=(2, 12)))], -1)
+    x = torch.cat([q, 0.3 * qd, torch.as_tensor(rng.normal(size=(3, 12)))], -1)
+    u[2, 0] = 10 * step.effort[0]  # clipped: no derivative through this torque
     F, f0 = step.linearize(x, u)
-    for i in range(2):
+    for i in range(3):
         Jx, Ju = torch.autograd.functional.jacobian(step, (x[i], u[i]))
-        torch.testing.assert_close(F[i], torch.cat([Jx, Ju], -1), rtol=1e-9, atol=1e-9)
+        assert _relative(F[i].numpy(), torch.cat([Jx, Ju], -1).numpy()) < 1e-9
+    assert float(F[2, :, x.shape[-1]].abs().max()) == 0.0
     xu = torch.cat([x, u], -1)
     torch.testing.assert_close((F @ xu[..., None]).squeeze(-1) + f0, step(x, u))
 

@@ -310,6 +310,113 @@ class ArmDynamics:
         F = f.flip(-2).cumsum(-2).flip(-2)
         return (S * F).sum(-1)
 
+    def inverse_dynamics_derivatives(
+        self,
+        frames: Frames,
+        qd: Tensor,
+        qdd: Tensor,
+        wrench: Tensor | None = None,
+        wrench_jacobian: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """``dtau/dq``, ``dtau/dqd`` and ``dtau/dqdd = M: [..., n, n]`` of
+        :meth:`inverse_dynamics_at` (the RNEA), analytically, in O(n) spatial products and
+        n x n dot products.
+
+        Moving joint k moves every body i >= k rigidly by the motion ``S_k``: its axis and
+        inertia change by ``S_k x S_i`` and ``S_k x* I_i - I_i S_k x``. With ``V'_k = V_{k-1}``,
+        ``A'_k = A_{k-1}`` (``A_0`` gravity), what does not follow rigidly is
+        ``dV_i/dq_k - S_k x V_i = c_k = -S_k x V'_k`` and
+        ``dA_i/dq_k - S_k x A_i = c_k x V_i + e_k``, ``e_k = -c_k x V'_k - S_k x A'_k``, so that
+        for i >= k (nothing changes for i < k)
+
+            ``df_i/dq_k = S_k x* f_i + I_i e_k + Y_i c_k + c_k x* I_i V_i``,
+            ``Y_i = V_i x* I_i - I_i V_i x - D_i``,
+
+        with ``D_i = dw_i/dV_i`` the wrench's derivative. For the velocities,
+        ``dV_i/dqd_k = S_k`` and ``dA_i/dqd_k = S_k x V_i + 2 c_k`` (i >= k), so
+        ``df_i/dqd_k = I_i 2 c_k + Y_i S_k + S_k x* I_i V_i``. Summing over ``i >= max(j, k)``
+        with the composite ``Ic_j``, ``Yc_j``, ``(IV)c_j`` (sums over i >= j), and as
+        ``(S_k x S_j) . F + S_j . (S_k x* F) = 0``: for ``j >= k``
+
+            ``dtau_j/dq_k = alpha_j . e_k + beta_j . c_k``,
+            ``dtau_j/dqd_k = beta_j . S_k + alpha_j . 2 c_k``,
+            ``alpha_j = Ic_j S_j``, ``beta_j = Yc_j^T S_j - S_j x* (IV)c_j``,
+
+        and for ``j < k``, ``dtau_j/dq_k = S_j . (Ic_k e_k + Yc_k c_k + c_k x* (IV)c_k
+        + S_k x* F_k)`` and ``dtau_j/dqd_k = S_j . (Yc_k S_k + Ic_k 2 c_k + S_k x* (IV)c_k)``.
+        The mass matrix is ``M_kj = S_k . alpha_j`` for ``j >= k`` (the CRBA).
+
+        :param wrench: external body wrenches ``w_i: [..., n, 6]`` as in :meth:`inverse_dynamics`,
+            which must move rigidly with their bodies (frame-invariant laws, as Bullet's damping)
+            and depend on q and qd only through the poses and ``V_i``.
+        :param wrench_jacobian: ``D_i = dw_i / dV_i: [..., n, 6, 6]`` at fixed poses
+            (:meth:`link_damping_with_jacobian`), or None for wrenches independent of velocity.
+        """
+        _, dq, dqd, M = self._derivatives(frames, qd, qdd, None, wrench, wrench_jacobian)
+        return dq, dqd, M
+
+    def forward_dynamics_derivatives(
+        self,
+        frames: Frames,
+        qd: Tensor,
+        tau: Tensor,
+        wrench: Tensor | None = None,
+        wrench_jacobian: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``qdd`` of :meth:`forward_dynamics_at` and, at it, the derivatives ``dtau/dq``,
+        ``dtau/dqd`` and ``M`` of :meth:`inverse_dynamics_derivatives`, from one pass over the
+        chain; with them ``dqdd = M^{-1} (dtau - dtau/dq dq - dtau/dqd dqd)``."""
+        qdd, dq, dqd, M = self._derivatives(frames, qd, None, tau, wrench, wrench_jacobian)
+        return qdd, dq, dqd, M
+
+    def _derivatives(
+        self,
+        frames: Frames,
+        qd: Tensor,
+        qdd: Tensor | None,
+        tau: Tensor | None,
+        wrench: Tensor | None,
+        wrench_jacobian: Tensor | None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:meth:`inverse_dynamics_derivatives` at ``qdd``, or with ``qdd`` solved from ``tau``."""
+        S = self.motion_subspace(frames)
+        m, h, J = self.world_inertia(frames)
+        Sqd = S * qd[..., None]  # [..., n, 6]
+        V = torch.cumsum(Sqd, -2)
+        A0 = S.new_zeros(6)
+        A0[5] = self.gravity
+        inertia = _inertia_matrix(m, h, J)  # [..., n, 6, 6]
+        Ic = _below(inertia, -3)
+        alpha = _mv(Ic, S)  # [..., j, 6]
+        M = torch.triu(S @ alpha.mT)
+        M = M + torch.triu(M, 1).mT
+        IV = _mv(inertia, V)
+        f_velocity = _cross_force(V, IV) if wrench is None else _cross_force(V, IV) - wrench
+        product = _cross_motion(V, Sqd)
+        if qdd is None:  # the RNEA at qdd = 0 is the bias c + g - tau_ext
+            assert tau is not None
+            bias = _mv(inertia, A0 + torch.cumsum(product, -2)) + f_velocity
+            qdd = torch.linalg.solve(M, tau - (S * _below(bias, -2)).sum(-1))
+        a = S * qdd[..., None] + product
+        A = A0 + torch.cumsum(a, -2)
+        V_prev, A_prev = V - Sqd, A - a  # V'_k, A'_k
+        f = _mv(inertia, A) + f_velocity
+        X = inertia @ _motion_cross_matrix(V)  # I_i V_i x; V_i x* I_i = -X^T
+        Y = -(X + X.mT)
+        if wrench_jacobian is not None:
+            Y = Y - wrench_jacobian
+        F, IVc, Yc = _below(f, -2), _below(IV, -2), _below(Y, -3)
+        c = -_cross_motion(S, V_prev)
+        e = -_cross_motion(c, V_prev) - _cross_motion(S, A_prev)
+        beta = _mv(Yc.mT, S) - _cross_force(S, IVc)
+        gamma_q = _mv(Ic, e) + _mv(Yc, c) + _cross_force(c, IVc) + _cross_force(S, F)  # [..., k, 6]
+        gamma_qd = _mv(Yc, S) + 2 * _mv(Ic, c) + _cross_force(S, IVc)
+        ones = torch.ones(self.n, self.n, dtype=torch.bool, device=S.device)
+        after = torch.triu(ones)  # [k, j]: j >= k
+        dq = torch.where(after, e @ alpha.mT + c @ beta.mT, gamma_q @ S.mT)  # [..., k, j]
+        dqd = torch.where(after, S @ beta.mT + 2 * c @ alpha.mT, gamma_qd @ S.mT)
+        return qdd, dq.mT, dqd.mT, M
+
     def mass_matrix(self, q: Tensor) -> Tensor:
         """``M(q): [..., n, n]`` by the composite-rigid-body algorithm."""
         frames = self.frames(q)
@@ -354,18 +461,56 @@ class ArmDynamics:
         COM: force ``-linear (1 + |v|) m v`` at the COM, moment ``-angular (1 + |omega|) I omega``
         (``btMultiBody``'s k1 + k2 |v| damping, both coefficients equal).
         """
+        omega, v, com, R = self._link_motion(frames, qd)
+        I_omega = _mv(R, _mv(self.body.link_inertia, _mv(R.mT, omega)))  # I_world omega
+        force = -linear * (1 + _norm(v)) * self.body.link_mass[:, None] * v
+        moment = -angular * (1 + _norm(omega)) * I_omega + _cross(com, force)
+        return self._to_bodies(torch.cat([moment, force], -1), "...si,sb->...bi")
+
+    def link_damping_with_jacobian(
+        self, frames: Frames, qd: Tensor, linear: float, angular: float
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`link_damping`'s wrenches ``w_b`` and ``D_b = dw_b / dV_b: [..., n, 6, 6]``,
+        their derivative with respect to the body's spatial velocity ``V_b = (omega, v_O)`` at
+        fixed poses. Per link, with ``K_v = -linear m ((1 + |v|) 1 + v v^T / |v|)``,
+        ``K_w = -angular ((1 + |omega|) I + I omega omega^T / |omega|)`` and ``C = [com]x``
+        (``v = v_O - C omega``):
+
+            ``D = [[K_w - C K_v C, C K_v], [-K_v C, K_v]]``, summed over the body's links.
+        """
+        omega, v, com, R = self._link_motion(frames, qd)
+        I_world = _mm(_mm(R, self.body.link_inertia), R.mT)
+        eye = torch.eye(3, dtype=qd.dtype, device=qd.device)
+        speed, spin = _norm(v), _norm(omega)  # [..., S, 1]
+        I_omega = _mv(I_world, omega)
+        force = -linear * (1 + speed) * self.body.link_mass[:, None] * v
+        moment = -angular * (1 + spin) * I_omega + _cross(com, force)
+        speed, spin = speed[..., None], spin[..., None]
+        K_v = (-linear * self.body.link_mass[:, None, None]) * (
+            (1 + speed) * eye + v[..., :, None] * v[..., None, :] / speed
+        )
+        K_w = -angular * ((1 + spin) * I_world + I_omega[..., :, None] * omega[..., None, :] / spin)
+        C = _skew(com)
+        K_v_C = K_v @ C
+        D = torch.cat([torch.cat([K_w - C @ K_v_C, C @ K_v], -1), torch.cat([-K_v_C, K_v], -1)], -2)
+        wrench = self._to_bodies(torch.cat([moment, force], -1), "...si,sb->...bi")
+        return wrench, self._to_bodies(D, "...sij,sb->...bij")
+
+    def _link_motion(self, frames: Frames, qd: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Per link: angular velocity, COM velocity, COM position ``[..., S, 3]`` and the
+        rotation of its body ``[..., S, 3, 3]``."""
         S = self.motion_subspace(frames)
         V = torch.cumsum(S * qd[..., None], -2)  # [..., n, 6]
         b = self.body.link_body
         Vl, R, p = V[..., b, :], frames.R[..., b, :, :], frames.p[..., b, :]  # per sub-link
         omega, v_origin = Vl[..., :3], Vl[..., 3:]
         com = p + _mv(R, self.body.link_com)  # [..., S, 3]
-        v = v_origin + _cross(omega, com)
-        I_omega = _mv(R, _mv(self.body.link_inertia, _mv(R.mT, omega)))  # I_world omega
-        force = -linear * (1 + _norm(v)) * self.body.link_mass[:, None] * v
-        moment = -angular * (1 + _norm(omega)) * I_omega + _cross(com, force)
-        one_hot = torch.nn.functional.one_hot(b, self.n).to(qd.dtype)  # [S, n]
-        return torch.einsum("...si,sb->...bi", torch.cat([moment, force], -1), one_hot)
+        return omega, v_origin + _cross(omega, com), com, R
+
+    def _to_bodies(self, per_link: Tensor, equation: str) -> Tensor:
+        """Sum per-link quantities over each body's links (``equation`` contracts s)."""
+        one_hot = torch.nn.functional.one_hot(self.body.link_body, self.n).to(per_link.dtype)
+        return torch.einsum(equation, per_link, one_hot)
 
     def points(self, frames: Frames) -> Tensor:
         """World positions of the peg's tip and top, ``[..., 2, 3]``."""
@@ -526,6 +671,24 @@ def _apply_inertia(m: Tensor, h: Tensor, J: Tensor, motion: Tensor) -> Tensor:
     w, v = motion[..., :3], motion[..., 3:]
     moment = _mv(J, w) + _cross(h, v)
     return torch.cat([moment, m[..., None] * v - _cross(h, w)], -1)
+
+
+def _below(x: Tensor, dim: int) -> Tensor:
+    """Sums over the bodies at and below each body: ``y_j = sum_{i>=j} x_i`` along ``dim``."""
+    return x.flip(dim).cumsum(dim).flip(dim)
+
+
+def _motion_cross_matrix(v: Tensor) -> Tensor:
+    """``[v]x: [..., 6, 6]`` with ``[v]x X = v x X`` (:func:`_cross_motion`); ``v x* = -[v]x^T``."""
+    w, lin = _skew(v[..., :3]), _skew(v[..., 3:])
+    return torch.cat([torch.cat([w, torch.zeros_like(w)], -1), torch.cat([lin, w], -1)], -2)
+
+
+def _inertia_matrix(m: Tensor, h: Tensor, J: Tensor) -> Tensor:
+    """``[[J, [h]x], [-[h]x, m 1]]: [..., 6, 6]``, the matrix of :func:`_apply_inertia`."""
+    H = _skew(h)
+    mass = (m[..., None, None] * torch.eye(3, dtype=h.dtype, device=h.device)).expand(H.shape)
+    return torch.cat([torch.cat([J, H], -1), torch.cat([-H, mass], -1)], -2)
 
 
 def _mv(A: Tensor, v: Tensor) -> Tensor:

@@ -27,12 +27,13 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.robot.arm import ArmSpec
-from lolgps_torch.robot.rigid_body import ArmDynamics
+from lolgps_torch.robot.rigid_body import ArmDynamics, Frames
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout
 
 # btMultiBody's default linear and angular damping, which PyBullet does not change.
 BULLET_LINK_DAMPING = 0.04
+LINK_DAMPING = (BULLET_LINK_DAMPING, BULLET_LINK_DAMPING)  # (linear, angular)
 
 
 class ControlStep:
@@ -60,29 +61,20 @@ class ControlStep:
     def __call__(self, x: Tensor, u: Tensor) -> Tensor:
         """The next state ``[..., dX]`` from states ``x: [..., dX]`` and actions ``u: [..., dU]``."""
         lay = self.layout
-        q, qd, moved = self._advance(x[..., lay.q], x[..., lay.qd], u)
+        q, qd, moved, _ = self._advance(x[..., lay.q], x[..., lay.qd], u)
         return torch.cat([q, qd, x[..., lay.points] + moved, moved / self.config.dt], -1)
 
     def linearize(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``f(x, u) ~ F [x; u] + f0`` at states ``x: [B, dX]`` and actions ``u: [B, dU]``:
-        ``F = df/d[x; u]: [B, dX, dX+dU]`` by reverse-mode autograd, ``f0 = f(x, u) - F [x; u]``.
+        ``F = df/d[x; u]: [B, dX, dX+dU]``, ``f0 = f(x, u) - F [x; u]``.
 
-        Only q, qd and u move the arm, so the Jacobian of ``(q', qd', P(q') - P(q))`` is taken
-        over those 3n inputs; the point columns are the identity (``p' = p + ...``) and the
-        point-velocity columns zero.
+        Only q, qd and u move the arm, so the Jacobian of ``(q', qd', P(q') - P(q))`` over those
+        3n inputs is propagated through the substeps (:meth:`_advance`); the point columns are
+        the identity (``p' = p + ...``) and the point-velocity columns zero.
         """
         lay, n = self.layout, self.layout.n_joints
-        inputs = torch.cat([x[:, lay.q], x[:, lay.qd], u], -1)  # [B, 3n]
-
-        with torch.enable_grad():
-            z = inputs.detach().requires_grad_()
-            q, qd, delta = self._advance(z[:, :n], z[:, n : 2 * n], z[:, 2 * n :])
-            out = torch.cat([q, qd, delta], -1)  # [B, 2n + 6]
-            # one reverse pass per output row, batched: rows of eye as the cotangents
-            eye = torch.eye(out.shape[-1], dtype=x.dtype, device=x.device)
-            cotangents = eye[:, None, :].expand(-1, out.shape[0], -1)
-            (rows,) = torch.autograd.grad(out, z, cotangents, is_grads_batched=True)
-        J = rows.transpose(0, 1)  # [B, 2n + 6, 3n]
+        q, qd, moved, J = self._advance(x[:, lay.q], x[:, lay.qd], u, jacobian=True)
+        assert J is not None
         B, dX = x.shape[0], lay.dX
         F = x.new_zeros(B, dX, dX + n)
         joint_cols = list(range(2 * n)) + list(range(dX, dX + n))  # q, qd and u columns
@@ -91,26 +83,70 @@ class ControlStep:
         F[:, lay.points, lay.points] = torch.eye(6, dtype=x.dtype, device=x.device)
         F[:, lay.point_velocities, joint_cols] = J[:, 2 * n :] / self.config.dt
         xu = torch.cat([x, u], -1)
-        f0 = self(x, u) - (F @ xu[..., None]).squeeze(-1)
+        step = torch.cat([q, qd, x[:, lay.points] + moved, moved / self.config.dt], -1)
+        f0 = step - (F @ xu[..., None]).squeeze(-1)
         return F, f0
 
-    def _advance(self, q: Tensor, qd: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Joint positions and velocities after one control step, and the points' move
-        ``P(q') - P(q): [..., 6]``."""
+    def _advance(
+        self, q: Tensor, qd: Tensor, u: Tensor, jacobian: bool = False
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+        """Joint positions and velocities after one control step, the points' move
+        ``P(q') - P(q): [..., 6]`` and, if ``jacobian``, the derivative of
+        ``(q', qd', P(q') - P(q))`` with respect to ``(q, qd, u)``: ``[..., 2n + 6, 3n]``.
+
+        The derivative is carried forward through the substeps by the chain rule, for all 3n
+        input directions at once, from analytic derivatives of the dynamics. With ``ID(q, qd, qdd) = tau`` the inverse dynamics including both
+        dampings, ``qdd = ID^{-1}(tau)`` has ``dqdd = M^{-1} (dtau - ID_q dq - ID_qd dqd)``
+        (:meth:`ArmDynamics.inverse_dynamics_derivatives`); then ``dqd <- dqd + h dqdd``,
+        ``dq <- dq + h dqd``. The held torque has ``dtau = [clip' g_q(q_0), 0, clip']``
+        (clip' = 1 inside the effort limits, 0 outside) and a point ``P`` on the last body moves
+        by ``dP/dq_k = v_k + omega_k x P`` for the joint motion ``S_k = (omega_k, v_k)``.
+        """
         dyn = self.dynamics
         frames = dyn.frames(q)
         start = dyn.points(frames).flatten(-2)  # [..., 6]
         zeros = torch.zeros_like(q)
         gravity = dyn.inverse_dynamics_at(frames, zeros, zeros)
         tau = torch.minimum(torch.maximum(u + gravity, -self.effort), self.effort)
+        if jacobian:
+            eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device).expand(*q.shape, -1)
+            none = torch.zeros_like(eye)
+            inside = ((u + gravity).abs() < self.effort).to(q.dtype)[..., None]
+            gravity_q = dyn.inverse_dynamics_derivatives(frames, zeros, zeros)[0]
+            d_tau = inside * torch.cat([gravity_q, none, eye], -1)  # [..., n, 3n]
+            d_q, d_qd = torch.cat([eye, none, none], -1), torch.cat([none, eye, none], -1)
+            d_start = self._point_jacobian(frames, start)
+        damping = torch.diag(dyn.joint_damping)
         for s in range(self.config.substeps):
             if s > 0:
                 frames = dyn.frames(q)
-            wrench = dyn.link_damping(frames, qd, BULLET_LINK_DAMPING, BULLET_LINK_DAMPING)
-            qdd = dyn.forward_dynamics_at(frames, qd, tau - dyn.joint_damping * qd, wrench)
+            held = tau - dyn.joint_damping * qd
+            if jacobian:
+                wrench, D = dyn.link_damping_with_jacobian(frames, qd, *LINK_DAMPING)
+                qdd, id_q, id_qd, M = dyn.forward_dynamics_derivatives(frames, qd, held, wrench, D)
+                rhs = d_tau - id_q @ d_q - (id_qd + damping) @ d_qd
+                d_qd = d_qd + self.h * torch.linalg.solve(M, rhs)
+                d_q = d_q + self.h * d_qd
+            else:
+                wrench = dyn.link_damping(frames, qd, *LINK_DAMPING)
+                qdd = dyn.forward_dynamics_at(frames, qd, held, wrench)
             qd = qd + self.h * qdd
             q = q + self.h * qd
-        return q, qd, dyn.points(dyn.frames(q)).flatten(-2) - start
+        frames = dyn.frames(q)
+        end = dyn.points(frames).flatten(-2)
+        if not jacobian:
+            return q, qd, end - start, None
+        d_moved = self._point_jacobian(frames, end) @ d_q
+        d_moved[..., : q.shape[-1]] -= d_start
+        return q, qd, end - start, torch.cat([d_q, d_qd, d_moved], -2)
+
+    def _point_jacobian(self, frames: Frames, points: Tensor) -> Tensor:
+        """``dP/dq: [..., 6, n]`` of the points ``P: [..., 6]`` (tip, top) on the last body:
+        ``v_k + omega_k x P`` per joint motion ``S_k = (omega_k, v_k)``."""
+        S = self.dynamics.motion_subspace(frames)[..., None, :, :]  # [..., 1, n, 6]
+        P = points.unflatten(-1, (2, 1, 3))  # [..., 2, 1, 3]
+        dP = S[..., 3:] + torch.linalg.cross(S[..., :3], P)  # [..., 2, n, 3]
+        return dP.transpose(-1, -2).flatten(-3, -2)
 
 
 def stabilising_inertia(dynamics: ArmDynamics, config: WorldConfig) -> list[float]:
