@@ -67,9 +67,10 @@ class PlacementConfig:
     :param dexterity: the least dexterity (:func:`dexterity`) allowed on the way from the start
         pose to each hole floor, as a fraction of the arm's reach per radian.  Near 0 the arm
         is at a singular pose (a stretched elbow, aligned wrist axes), where its controllers
-        cannot move the peg in some direction: on a published UR5 every position whose path
-        fell below 0.006 R (0.004-0.007 m/rad) jammed its local controller or its policy, and
-        the positions that learnt had 0.014-0.037 R.
+        cannot move the peg in some direction.  On a published UR5 the five positions that
+        could not be followed from the start pose (4-24 mm short, dexterity at most 0.0075)
+        were the five whose local controller or policy ended 17-105 mm from the target; the
+        positions that learnt had 0.014-0.037 (docs/RESULTS.md section 15).
     """
 
     reach_fraction: float = 0.55
