@@ -15,6 +15,7 @@ from lolgps_torch.dynamics import (
     NIWPrior,
     gaussian_regression,
 )
+from lolgps_torch.dynamics.gmm import RESPONSIBILITY_FLOOR, _m_step
 from lolgps_torch.errors import LolgpsError
 
 DTYPE = torch.float64
@@ -184,6 +185,40 @@ def test_em_recovers_separated_means() -> None:
     assert sorted(order.tolist()) == [0, 1, 2]
     torch.testing.assert_close(gmm.means[order, :3], means, atol=0.3, rtol=0)
     torch.testing.assert_close(gmm.log_weights[order].exp(), weights, atol=0.05, rtol=0)
+
+
+def test_m_step_is_the_per_cluster_m_step_of_the_floored_responsibilities() -> None:
+    """The M-step, summed over each cluster's own points, equals the textbook per-cluster
+    M-step with responsibilities at or below the floor set to 0, and the floor changes the
+    covariances by less than 1e-12 of the unfloored ones."""
+    g = torch.Generator().manual_seed(0)
+    P, D, K, alpha = 300, 5, 4, 1e-3
+    points = torch.randn(P, D, generator=g, dtype=DTYPE) * torch.tensor([1.0, 2, 3, 0.1, 10])
+    points = points - points.mean(0)
+    resp = torch.softmax(30.0 * torch.randn(P, K, generator=g, dtype=DTYPE), dim=1)
+    soft = (resp > RESPONSIBILITY_FLOOR) & (resp < 0.5)
+    assert bool((resp <= RESPONSIBILITY_FLOOR).any() and soft.any())  # both kinds present
+
+    def textbook(r: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        counts = r.sum(0)
+        means = (r.T @ points) / counts[:, None]
+        covs = (
+            torch.stack(
+                [
+                    ((points - means[k]) * r[:, k, None]).T @ (points - means[k])
+                    + alpha * torch.eye(D, dtype=DTYPE)
+                    for k in range(K)
+                ]
+            )
+            / counts[:, None, None]
+        )
+        return torch.log(counts / counts.sum()), means, covs
+
+    floored = torch.where(resp > RESPONSIBILITY_FLOOR, resp, 0.0)
+    for got, expected in zip(_m_step(points, resp, alpha), textbook(floored), strict=True):
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(_m_step(points, resp, alpha)[2], textbook(resp)[2], rtol=1e-12,
+                               atol=1e-12)  # fmt: skip
 
 
 def test_gmm_log_likelihood_and_responsibilities_match_torch_distributions() -> None:
