@@ -15,6 +15,7 @@ from lolgps_torch.dynamics import (
     NIWPrior,
     gaussian_regression,
 )
+from lolgps_torch.dynamics import gmm as gmm_module
 from lolgps_torch.dynamics.gmm import RESPONSIBILITY_FLOOR, _m_step
 from lolgps_torch.errors import LolgpsError
 
@@ -246,6 +247,74 @@ def test_gmm_is_deterministic_and_warm_starts() -> None:
     warm = first.fit(points, K=3)
     assert len(warm) <= 2
     assert warm[0] >= history[-1] - 1e-9 * abs(history[-1])
+
+
+def _counting_e_steps(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Record the number of points of every E-step's log-joint computation."""
+    rows: list[int] = []
+    original = gmm_module._log_joint
+
+    def counted(points: Tensor, *args: Tensor) -> Tensor:
+        rows.append(points.shape[0])
+        return original(points, *args)
+
+    monkeypatch.setattr(gmm_module, "_log_joint", counted)
+    return rows
+
+
+def test_warm_start_reuses_the_log_joint_of_the_rows_it_ended_on(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A window that drops its oldest 200 points and appends 200 new ones: the warm start's
+    first E-step computes only the new rows, and the fit equals one that computes them all."""
+    points, _, _ = _three_clusters(seed=4)
+    first, window = points[:400], points[200:]
+    reusing, recomputing = GaussianMixture(seed=3), GaussianMixture(seed=3)
+    reusing.fit(first, K=3)
+    recomputing.fit(first, K=3)
+    recomputing._kept = None  # computes every row
+    rows = _counting_e_steps(monkeypatch)
+    history = reusing.fit(window, K=3)
+    assert rows[0] == 200 and all(r == 400 for r in rows[1:])
+    expected = recomputing.fit(window, K=3)
+    assert len(history) == len(expected)
+    torch.testing.assert_close(torch.tensor(history), torch.tensor(expected), rtol=1e-12, atol=0)
+    assert reusing.means is not None and recomputing.means is not None
+    torch.testing.assert_close(reusing.means, recomputing.means, rtol=1e-12, atol=1e-12)
+
+
+def test_responsibilities_of_the_last_rows_come_from_the_fit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """After a converged fit, the responsibilities of its last points are read from its last
+    E-step (no new computation) and equal freshly computed ones; other points are computed."""
+    points, _, _ = _three_clusters(seed=5)
+    gmm = GaussianMixture(seed=0)
+    gmm.fit(points, K=3)
+    rows = _counting_e_steps(monkeypatch)
+    kept = gmm.responsibilities(points[-100:])
+    assert rows == [0]
+    other = points[:50] + 0.01
+    fresh = gmm.responsibilities(other)
+    assert rows == [0, 50]
+    gmm._kept = None
+    torch.testing.assert_close(kept, gmm.responsibilities(points[-100:]), rtol=1e-12, atol=1e-12)
+    assert rows[-1] == 100
+    torch.testing.assert_close(fresh, gmm.responsibilities(other), rtol=0, atol=0)
+
+
+def test_a_fit_stopped_by_max_iterations_keeps_no_log_joint(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A fit that ends on an M-step has no E-step at its final parameters: the next E-step
+    computes every row."""
+    points, _, _ = _three_clusters(seed=6)
+    gmm = GaussianMixture(max_iterations=1, seed=0)
+    gmm.fit(points, K=3)
+    rows = _counting_e_steps(monkeypatch)
+    gmm.responsibilities(points)
+    gmm.fit(points, K=3)
+    assert rows == [600, 600]
 
 
 def test_moment_matching() -> None:

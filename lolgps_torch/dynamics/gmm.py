@@ -38,6 +38,13 @@ class GaussianMixture:
     M-step on the hard assignments. Random choices use a ``torch.Generator`` seeded by ``seed``,
     so a sequence of fits is deterministic.
 
+    Reuse: when ``fit`` stops by the tolerance, its last E-step was at the final parameters,
+    and its log-joint ``[P, K]`` is kept with its points. A later E-step at those parameters
+    (the warm start's first one, ``responsibilities``, ``log_likelihood``) takes the rows of
+    points that continue the kept ones, ``z_new[:L] = z_kept[s:s+L]`` (as a window of recent
+    trajectories that dropped its oldest and appended new ones), from it and computes only the
+    others.
+
     :param cov_reg: covariance regulariser for a cluster of average size.
     :param max_iterations: maximum number of EM iterations per ``fit``.
     :param tolerance: stop when ``L`` improves by less than this many nats per point.
@@ -62,6 +69,7 @@ class GaussianMixture:
         self.means: Tensor | None = None  # [K, D]
         self.covs: Tensor | None = None  # [K, D, D]
         self._chol_inv: Tensor | None = None  # [K, D, D], L_k^{-1} with Sigma_k = L_k L_k^T
+        self._kept: tuple[Tensor, Tensor] | None = None  # points [P, D], log-joint [P, K]
 
     @property
     def K(self) -> int:
@@ -81,29 +89,33 @@ class GaussianMixture:
         # EM runs on centred points so that the M-step's raw second moments do not cancel.
         shift = points.mean(0)  # [D]
         centred = points - shift
-        if self.means is not None and self.means.shape == (K, points.shape[1]):
-            assert self.log_weights is not None and self.covs is not None
-            log_weights, means, covs = (
-                p.to(points) for p in (self.log_weights, self.means, self.covs)
-            )
+        warm = self.means is not None and self.means.shape == (K, points.shape[1])
+        if warm:
+            log_weights, means, covs = (p.to(points) for p in self._fitted()[:3])
             means = means - shift
         else:
             log_weights, means, covs = self._initialise(centred, K)
         chol_inv = _cholesky_inverse(covs)
         alpha = self.cov_reg * P / K
         history: list[float] = []
+        converged = False
+        reused = self._known_rows(points) if warm else points.new_empty(0, K)
         for _ in range(self.max_iterations):
-            log_joint = _log_joint(centred, log_weights, means, chol_inv)  # [P, K]
+            fresh = _log_joint(centred[len(reused) :], log_weights, means, chol_inv)
+            log_joint = torch.cat([reused, fresh])  # [P, K]
+            reused = points.new_empty(0, K)  # the first E-step only
             log_norm = torch.logsumexp(log_joint, dim=1)  # [P]
             penalty = 0.5 * alpha * chol_inv.square().sum()  # alpha/2 sum_k tr(Sigma_k^{-1})
             history.append(float(log_norm.sum() - penalty))
             if len(history) > 1 and history[-1] - history[-2] < self.tolerance * P:
+                converged = True
                 break
             resp = torch.exp(log_joint - log_norm[:, None])  # [P, K]
             log_weights, means, covs = _m_step(centred, resp, alpha)
             chol_inv = _cholesky_inverse(covs)
         self.log_weights, self.means, self.covs = log_weights, means + shift, covs
         self._chol_inv = chol_inv
+        self._kept = (points.clone(), log_joint) if converged else None
         return history
 
     def log_likelihood(self, points: Tensor) -> Tensor:
@@ -143,7 +155,23 @@ class GaussianMixture:
 
     def _log_joint(self, points: Tensor) -> Tensor:
         log_weights, means, _, chol_inv = self._fitted()
-        return _log_joint(points, log_weights, means, chol_inv)
+        known = self._known_rows(points)
+        return torch.cat([known, _log_joint(points[len(known) :], log_weights, means, chol_inv)])
+
+    def _known_rows(self, points: Tensor) -> Tensor:
+        """The kept log-joint of the leading rows of ``points`` that continue the kept points
+        from some row s on (``[L, K]``, L = 0 when none do)."""
+        none = points.new_empty(0, self.K)
+        if self._kept is None or len(points) == 0:
+            return none
+        kept, log_joint = self._kept
+        if kept.shape[1] != points.shape[1] or kept.dtype != points.dtype:
+            return none
+        for start in (kept == points[0]).all(1).nonzero().flatten().tolist():
+            length = min(len(kept) - start, len(points))
+            if torch.equal(kept[start : start + length], points[:length]):
+                return log_joint[start : start + length]
+        return none
 
     def _initialise(self, points: Tensor, K: int) -> tuple[Tensor, Tensor, Tensor]:
         """k-means++ seeding and Lloyd iterations on standardised ``points`` (centred), then one
