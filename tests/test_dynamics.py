@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from torch import Tensor
@@ -16,10 +18,11 @@ from lolgps_torch.dynamics import (
     gaussian_regression,
 )
 from lolgps_torch.dynamics import gmm as gmm_module
-from lolgps_torch.dynamics.gmm import RESPONSIBILITY_FLOOR, _m_step
+from lolgps_torch.dynamics.gmm import BOUND_SLACK, PRUNE_NATS, RESPONSIBILITY_FLOOR, _m_step
 from lolgps_torch.errors import LolgpsError
 
 DTYPE = torch.float64
+LOG_2PI = math.log(2 * math.pi)
 
 
 def _system(T: int, dX: int, dU: int, seed: int) -> tuple[Tensor, Tensor]:
@@ -220,6 +223,67 @@ def test_m_step_is_the_per_cluster_m_step_of_the_floored_responsibilities() -> N
         torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(_m_step(points, resp, alpha)[2], textbook(resp)[2], rtol=1e-12,
                                atol=1e-12)  # fmt: skip
+
+
+def _dense_log_joint(points: Tensor, log_weights: Tensor, means: Tensor, chol_inv: Tensor
+                     ) -> Tensor:  # fmt: skip
+    """Every ``log w_k + log N(z_p | mu_k, Sigma_k)``, cluster by cluster from ``C_k (z - mu_k)``."""
+    D = points.shape[1]
+    columns = []
+    for k in range(means.shape[0]):
+        white = (points - means[k]) @ chol_inv[k].T
+        log_det = torch.diagonal(chol_inv[k]).log().sum()
+        columns.append(log_weights[k] + log_det - 0.5 * (white.square().sum(1) + D * LOG_2PI))
+    return torch.stack(columns, dim=1)
+
+
+def _random_mixture(K: int, D: int, seed: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Log-weights, means and Cholesky factors of the precisions of a random mixture."""
+    g = torch.Generator().manual_seed(seed)
+    log_weights = torch.log_softmax(torch.randn(K, generator=g, dtype=DTYPE), 0)
+    means = 6.0 * torch.randn(K, D, generator=g, dtype=DTYPE)
+    factors = torch.randn(K, D, D, generator=g, dtype=DTYPE) / D**0.5
+    covs = factors @ factors.mT + 0.1 * torch.eye(D, dtype=DTYPE)
+    eye = torch.eye(D, dtype=DTYPE).expand(K, D, D)
+    chol_inv = torch.linalg.solve_triangular(torch.linalg.cholesky(covs), eye, upper=False)
+    return log_weights, means, chol_inv
+
+
+def test_e_step_leaves_out_only_clusters_50_nats_below_the_best() -> None:
+    """The E-step's log-joint equals the per-cluster formula to 1e-12 wherever it is computed,
+    is -inf only where that is more than 50 nats below the point's best cluster, and gives
+    the same responsibilities to 1e-12."""
+    log_weights, means, chol_inv = _random_mixture(K=8, D=9, seed=0)
+    g = torch.Generator().manual_seed(1)
+    labels = torch.randint(8, (500,), generator=g)
+    points = means[labels] + 2.0 * torch.randn(500, 9, generator=g, dtype=DTYPE)
+    got = gmm_module._log_joint(points, log_weights, means, chol_inv)
+    expected = _dense_log_joint(points, log_weights, means, chol_inv)
+    left_out = torch.isinf(got)
+    assert bool(left_out.any() and (~left_out).any())  # both kinds present
+    torch.testing.assert_close(got[~left_out], expected[~left_out], rtol=1e-12, atol=1e-12)
+    best = expected.max(1, keepdim=True).values.expand_as(expected)
+    assert bool((expected[left_out] < best[left_out] - PRUNE_NATS).all())
+    torch.testing.assert_close(torch.softmax(got, 1), torch.softmax(expected, 1), rtol=0,
+                               atol=1e-12)  # fmt: skip
+
+
+def test_e_step_computes_every_cluster_of_a_point_its_bound_misleads() -> None:
+    """A cluster whose leading coordinate matches the point (the highest bound) but that is far
+    in the last one, and a cluster 20 standard deviations off in the leading coordinate (a
+    bound too low to be a candidate): the point's best exact value then does not rule the
+    second out, so all its clusters are computed and the second gets the point."""
+    D = 4  # bounds from the first coordinate (m = 1)
+    means = torch.zeros(2, D, dtype=DTYPE)
+    means[0, 3], means[1, 0] = 1000.0, 20.0
+    chol_inv = torch.eye(D, dtype=DTYPE).expand(2, D, D)
+    log_weights = torch.log(torch.tensor([0.5, 0.5], dtype=DTYPE))
+    points = torch.zeros(1, D, dtype=DTYPE)
+    assert BOUND_SLACK < 0.5 * 20.0**2  # the far cluster is not a candidate by its bound
+    got = gmm_module._log_joint(points, log_weights, means, chol_inv)
+    torch.testing.assert_close(got, _dense_log_joint(points, log_weights, means, chol_inv),
+                               rtol=1e-12, atol=0)  # fmt: skip
+    assert float(torch.softmax(got, 1)[0, 1]) == 1.0
 
 
 def test_gmm_log_likelihood_and_responsibilities_match_torch_distributions() -> None:

@@ -15,6 +15,8 @@ from torch import Tensor
 from lolgps_torch.errors import LolgpsError
 
 RESPONSIBILITY_FLOOR = 1e-20  # the M-step treats smaller responsibilities as 0
+PRUNE_NATS = 50.0  # a log-joint this far below a point's best is left out (-inf)
+BOUND_SLACK = 60.0  # pairs whose upper bound is within this of a point's best bound are computed
 
 
 class GaussianMixture:
@@ -201,19 +203,52 @@ class GaussianMixture:
 
 def _log_joint(points: Tensor, log_weights: Tensor, means: Tensor, chol_inv: Tensor) -> Tensor:
     """``log w_k + log N(z_p | mu_k, Sigma_k)`` -> ``[P, K]``, with ``Sigma_k^{-1} = C_k^T C_k``
-    for ``C_k = chol_inv[k]`` lower triangular."""
+    for ``C_k = chol_inv[k]`` lower triangular; ``-inf`` where it is more than ``PRUNE_NATS``
+    below the point's best cluster (``r_pk < e^-50``: the responsibilities and the likelihood
+    change by less than float64's rounding).
+
+    Pruning: ``C_k`` is lower triangular, so the first m whitened coordinates depend on the
+    first m coordinates of z only and, for m = ceil(D / 4),
+        ``|C_k (z - mu_k)|^2 >= |C_k[:m, :m] (z[:m] - mu_k[:m])|^2``,
+    an upper bound on each log-joint for ``(m / D)^2`` of the work. The exact value is computed,
+    cluster by cluster, for the pairs whose bound is within ``BOUND_SLACK`` of the point's best
+    bound; a point whose best exact value is not ``PRUNE_NATS`` above every left-out bound has
+    all K computed.
+    """
     P, D = points.shape
-    K = chol_inv.shape[0]
-    # Whitened residuals C_k (z_p - mu_k): [P, K, D], as one product of the augmented points
-    # [z_p, 1] with [C_k, -C_k mu_k] stacked over k.
-    offset = (chol_inv @ means[:, :, None]).squeeze(-1)  # [K, D]
-    operator = torch.cat([chol_inv, -offset[:, :, None]], dim=2).reshape(K * D, D + 1)
-    augmented = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)  # [P, D + 1]
-    white = (augmented @ operator.T).view(P, K, D)
-    mahalanobis = torch.linalg.vector_norm(white, dim=-1).square()  # [P, K]
+    K = means.shape[0]
     half_log_det_precision = torch.diagonal(chol_inv, dim1=-2, dim2=-1).log().sum(-1)  # [K]
-    log_normal = half_log_det_precision - 0.5 * (mahalanobis + D * math.log(2 * math.pi))
-    return log_normal + log_weights
+    constant = log_weights + half_log_det_precision - 0.5 * D * math.log(2 * math.pi)  # [K]
+    augmented = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)  # [P, D + 1]
+    operator = _whitening(means, chol_inv)  # [K, D, D + 1]
+    m = -(-D // 4)
+    lead = torch.cat([points[:, :m], augmented[:, D:]], dim=1)  # [P, m + 1]
+    bound = constant - 0.5 * _mahalanobis(lead, _whitening(means[:, :m], chol_inv[:, :m, :m]))
+    candidate = bound >= bound.max(1, keepdim=True).values - BOUND_SLACK  # [P, K]
+    cluster, point = torch.nonzero(candidate.T, as_tuple=True)  # cluster by cluster
+    rows = augmented[point].split(torch.bincount(cluster, minlength=K).tolist())
+    white = torch.cat([row @ operator[k].T for k, row in enumerate(rows)])  # [pairs, D]
+    log_joint = torch.full((P, K), -math.inf, dtype=points.dtype, device=points.device)
+    log_joint[point, cluster] = constant[cluster] - 0.5 * white.square().sum(-1)
+    best = log_joint.max(1, keepdim=True).values
+    unsure = (~candidate & (bound > best - PRUNE_NATS)).any(1)  # [P]
+    if bool(unsure.any()):
+        log_joint[unsure] = constant - 0.5 * _mahalanobis(augmented[unsure], operator)
+    return log_joint
+
+
+def _whitening(means: Tensor, chol_inv: Tensor) -> Tensor:
+    """``[C_k, -C_k mu_k]`` ``[K, D, D + 1]``: applied to ``[z; 1]`` it gives ``C_k (z - mu_k)``."""
+    offset = (chol_inv @ means[:, :, None]).squeeze(-1)  # [K, D]
+    return torch.cat([chol_inv, -offset[:, :, None]], dim=2)
+
+
+def _mahalanobis(augmented: Tensor, operator: Tensor) -> Tensor:
+    """``|C_k (z_p - mu_k)|^2`` ``[P, K]`` for all pairs, as one product of the augmented
+    points ``[z_p; 1]`` ``[P, D + 1]`` with the stacked ``operator`` ``[K, D, D + 1]``."""
+    P = augmented.shape[0]
+    K, D, _ = operator.shape
+    return (augmented @ operator.reshape(K * D, D + 1).T).view(P, K, D).square().sum(-1)
 
 
 def _m_step(points: Tensor, resp: Tensor, alpha: float) -> tuple[Tensor, Tensor, Tensor]:
