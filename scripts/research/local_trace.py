@@ -136,8 +136,8 @@ def main() -> None:
     parser.add_argument(
         "--save-samples",
         default=None,
-        help="write every iteration's samples and the sampling CPU time to this file "
-        "(torch.save), for scripts/bench/bench_fit.py --samples",
+        help="write every iteration's samples, the states p_pre was linearised around and the "
+        "sampling CPU time to this file (torch.save), for scripts/bench/bench_fit.py --samples",
     )
     args = parser.parse_args()
     torch.set_num_threads(1)
