@@ -260,7 +260,8 @@ def _m_step(points: Tensor, resp: Tensor, alpha: float) -> tuple[Tensor, Tensor,
     summed per cluster over its own points, ``sum_{p: r_pk > floor} r_pk z_p z_p^T``, about
     ``P D^2`` products in all instead of ``K P D^2``. Zeroing changes each ``n_k`` by at most
     ``1e-20 P`` and each second moment by at most ``1e-20 P max_p |z_p|^2`` in norm, far
-    below ``alpha`` (the smallest eigenvalue of ``n_k Sigma_k``) unless the points span ~1e6.
+    below ``alpha`` (a lower bound on the eigenvalues of ``n_k Sigma_k``) unless the points
+    span ~1e6.
     The scatter comes from raw moments, ``sum_p r_pk z_p z_p^T - n_k mu_k mu_k^T``; its
     rounding error, about ``1e-16 n_k |z|^2``, stays far below ``alpha`` for centred points
     unless they span ~1e4 or more.
