@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from torch import Tensor
@@ -15,9 +17,12 @@ from lolgps_torch.dynamics import (
     NIWPrior,
     gaussian_regression,
 )
+from lolgps_torch.dynamics import gmm as gmm_module
+from lolgps_torch.dynamics.gmm import BOUND_SLACK, PRUNE_NATS, RESPONSIBILITY_FLOOR, _m_step
 from lolgps_torch.errors import LolgpsError
 
 DTYPE = torch.float64
+LOG_2PI = math.log(2 * math.pi)
 
 
 def _system(T: int, dX: int, dU: int, seed: int) -> tuple[Tensor, Tensor]:
@@ -186,6 +191,101 @@ def test_em_recovers_separated_means() -> None:
     torch.testing.assert_close(gmm.log_weights[order].exp(), weights, atol=0.05, rtol=0)
 
 
+def test_m_step_is_the_per_cluster_m_step_of_the_floored_responsibilities() -> None:
+    """The M-step, summed over each cluster's own points, equals the textbook per-cluster
+    M-step with responsibilities at or below the floor set to 0, and the floor changes the
+    covariances by less than 1e-12 of the unfloored ones."""
+    g = torch.Generator().manual_seed(0)
+    P, D, K, alpha = 300, 5, 4, 1e-3
+    points = torch.randn(P, D, generator=g, dtype=DTYPE) * torch.tensor([1.0, 2, 3, 0.1, 10])
+    points = points - points.mean(0)
+    resp = torch.softmax(30.0 * torch.randn(P, K, generator=g, dtype=DTYPE), dim=1)
+    soft = (resp > RESPONSIBILITY_FLOOR) & (resp < 0.5)
+    assert bool((resp <= RESPONSIBILITY_FLOOR).any() and soft.any())  # both kinds present
+
+    def textbook(r: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        counts = r.sum(0)
+        means = (r.T @ points) / counts[:, None]
+        covs = (
+            torch.stack(
+                [
+                    ((points - means[k]) * r[:, k, None]).T @ (points - means[k])
+                    + alpha * torch.eye(D, dtype=DTYPE)
+                    for k in range(K)
+                ]
+            )
+            / counts[:, None, None]
+        )
+        return torch.log(counts / counts.sum()), means, covs
+
+    floored = torch.where(resp > RESPONSIBILITY_FLOOR, resp, 0.0)
+    for got, expected in zip(_m_step(points, resp, alpha), textbook(floored), strict=True):
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(_m_step(points, resp, alpha)[2], textbook(resp)[2], rtol=1e-12,
+                               atol=1e-12)  # fmt: skip
+
+
+def _dense_log_joint(points: Tensor, log_weights: Tensor, means: Tensor, chol_inv: Tensor
+                     ) -> Tensor:  # fmt: skip
+    """Every ``log w_k + log N(z_p | mu_k, Sigma_k)``, cluster by cluster from ``C_k (z - mu_k)``."""
+    D = points.shape[1]
+    columns = []
+    for k in range(means.shape[0]):
+        white = (points - means[k]) @ chol_inv[k].T
+        log_det = torch.diagonal(chol_inv[k]).log().sum()
+        columns.append(log_weights[k] + log_det - 0.5 * (white.square().sum(1) + D * LOG_2PI))
+    return torch.stack(columns, dim=1)
+
+
+def _random_mixture(K: int, D: int, seed: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Log-weights, means and Cholesky factors of the precisions of a random mixture."""
+    g = torch.Generator().manual_seed(seed)
+    log_weights = torch.log_softmax(torch.randn(K, generator=g, dtype=DTYPE), 0)
+    means = 6.0 * torch.randn(K, D, generator=g, dtype=DTYPE)
+    factors = torch.randn(K, D, D, generator=g, dtype=DTYPE) / D**0.5
+    covs = factors @ factors.mT + 0.1 * torch.eye(D, dtype=DTYPE)
+    eye = torch.eye(D, dtype=DTYPE).expand(K, D, D)
+    chol_inv = torch.linalg.solve_triangular(torch.linalg.cholesky(covs), eye, upper=False)
+    return log_weights, means, chol_inv
+
+
+def test_e_step_leaves_out_only_clusters_50_nats_below_the_best() -> None:
+    """The E-step's log-joint equals the per-cluster formula to 1e-12 wherever it is computed,
+    is -inf only where that is more than 50 nats below the point's best cluster, and gives
+    the same responsibilities to 1e-12."""
+    log_weights, means, chol_inv = _random_mixture(K=8, D=9, seed=0)
+    g = torch.Generator().manual_seed(1)
+    labels = torch.randint(8, (500,), generator=g)
+    points = means[labels] + 2.0 * torch.randn(500, 9, generator=g, dtype=DTYPE)
+    got = gmm_module._log_joint(points, log_weights, means, chol_inv)
+    expected = _dense_log_joint(points, log_weights, means, chol_inv)
+    left_out = torch.isinf(got)
+    assert bool(left_out.any() and (~left_out).any())  # both kinds present
+    torch.testing.assert_close(got[~left_out], expected[~left_out], rtol=1e-12, atol=1e-12)
+    best = expected.max(1, keepdim=True).values.expand_as(expected)
+    assert bool((expected[left_out] < best[left_out] - PRUNE_NATS).all())
+    torch.testing.assert_close(torch.softmax(got, 1), torch.softmax(expected, 1), rtol=0,
+                               atol=1e-12)  # fmt: skip
+
+
+def test_e_step_computes_every_cluster_of_a_point_its_bound_misleads() -> None:
+    """A cluster whose leading coordinate matches the point (the highest bound) but that is far
+    in the last one, and a cluster 20 standard deviations off in the leading coordinate (a
+    bound too low to be a candidate): the point's best exact value then does not rule the
+    second out, so all its clusters are computed and the second gets the point."""
+    D = 4  # bounds from the first coordinate (m = 1)
+    means = torch.zeros(2, D, dtype=DTYPE)
+    means[0, 3], means[1, 0] = 1000.0, 20.0
+    chol_inv = torch.eye(D, dtype=DTYPE).expand(2, D, D)
+    log_weights = torch.log(torch.tensor([0.5, 0.5], dtype=DTYPE))
+    points = torch.zeros(1, D, dtype=DTYPE)
+    assert BOUND_SLACK < 0.5 * 20.0**2  # the far cluster is not a candidate by its bound
+    got = gmm_module._log_joint(points, log_weights, means, chol_inv)
+    torch.testing.assert_close(got, _dense_log_joint(points, log_weights, means, chol_inv),
+                               rtol=1e-12, atol=0)  # fmt: skip
+    assert float(torch.softmax(got, 1)[0, 1]) == 1.0
+
+
 def test_gmm_log_likelihood_and_responsibilities_match_torch_distributions() -> None:
     points, _, _ = _three_clusters(seed=2)
     gmm = GaussianMixture(seed=0)
@@ -211,6 +311,74 @@ def test_gmm_is_deterministic_and_warm_starts() -> None:
     warm = first.fit(points, K=3)
     assert len(warm) <= 2
     assert warm[0] >= history[-1] - 1e-9 * abs(history[-1])
+
+
+def _counting_e_steps(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Record the number of points of every E-step's log-joint computation."""
+    rows: list[int] = []
+    original = gmm_module._log_joint
+
+    def counted(points: Tensor, *args: Tensor) -> Tensor:
+        rows.append(points.shape[0])
+        return original(points, *args)
+
+    monkeypatch.setattr(gmm_module, "_log_joint", counted)
+    return rows
+
+
+def test_warm_start_reuses_the_log_joint_of_the_rows_it_ended_on(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A window that drops its oldest 200 points and appends 200 new ones: the warm start's
+    first E-step computes only the new rows, and the fit equals one that computes them all."""
+    points, _, _ = _three_clusters(seed=4)
+    first, window = points[:400], points[200:]
+    reusing, recomputing = GaussianMixture(seed=3), GaussianMixture(seed=3)
+    reusing.fit(first, K=3)
+    recomputing.fit(first, K=3)
+    recomputing._kept = None  # computes every row
+    rows = _counting_e_steps(monkeypatch)
+    history = reusing.fit(window, K=3)
+    assert rows[0] == 200 and all(r == 400 for r in rows[1:])
+    expected = recomputing.fit(window, K=3)
+    assert len(history) == len(expected)
+    torch.testing.assert_close(torch.tensor(history), torch.tensor(expected), rtol=1e-12, atol=0)
+    assert reusing.means is not None and recomputing.means is not None
+    torch.testing.assert_close(reusing.means, recomputing.means, rtol=1e-12, atol=1e-12)
+
+
+def test_responsibilities_of_the_last_rows_come_from_the_fit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """After a converged fit, the responsibilities of its last points are read from its last
+    E-step (no new computation) and equal freshly computed ones; other points are computed."""
+    points, _, _ = _three_clusters(seed=5)
+    gmm = GaussianMixture(seed=0)
+    gmm.fit(points, K=3)
+    rows = _counting_e_steps(monkeypatch)
+    kept = gmm.responsibilities(points[-100:])
+    assert rows == [0]
+    other = points[:50] + 0.01
+    fresh = gmm.responsibilities(other)
+    assert rows == [0, 50]
+    gmm._kept = None
+    torch.testing.assert_close(kept, gmm.responsibilities(points[-100:]), rtol=1e-12, atol=1e-12)
+    assert rows[-1] == 100
+    torch.testing.assert_close(fresh, gmm.responsibilities(other), rtol=0, atol=0)
+
+
+def test_a_fit_stopped_by_max_iterations_keeps_no_log_joint(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A fit that ends on an M-step has no E-step at its final parameters: the next E-step
+    computes every row."""
+    points, _, _ = _three_clusters(seed=6)
+    gmm = GaussianMixture(max_iterations=1, seed=0)
+    gmm.fit(points, K=3)
+    rows = _counting_e_steps(monkeypatch)
+    gmm.responsibilities(points)
+    gmm.fit(points, K=3)
+    assert rows == [600, 600]
 
 
 def test_moment_matching() -> None:

@@ -14,6 +14,10 @@ from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 
+RESPONSIBILITY_FLOOR = 1e-20  # the M-step treats smaller responsibilities as 0
+PRUNE_NATS = 50.0  # a log-joint this far below a point's best is left out (-inf)
+BOUND_SLACK = 60.0  # pairs whose upper bound is within this of a point's best bound are computed
+
 
 class GaussianMixture:
     """Mixture ``p(z) = sum_k w_k N(z | mu_k, Sigma_k)`` fitted by (penalised) EM.
@@ -35,6 +39,13 @@ class GaussianMixture:
     k-means++ seeding and a few Lloyd iterations on per-dimension standardised points, then one
     M-step on the hard assignments. Random choices use a ``torch.Generator`` seeded by ``seed``,
     so a sequence of fits is deterministic.
+
+    Reuse: when ``fit`` stops by the tolerance, its last E-step was at the final parameters,
+    and its log-joint ``[P, K]`` is kept with its points. A later E-step at those parameters
+    (the warm start's first one, ``responsibilities``, ``log_likelihood``) takes the rows of
+    points that continue the kept ones, ``z_new[:L] = z_kept[s:s+L]`` (as a window of recent
+    trajectories that dropped its oldest and appended new ones), from it and computes only the
+    others.
 
     :param cov_reg: covariance regulariser for a cluster of average size.
     :param max_iterations: maximum number of EM iterations per ``fit``.
@@ -60,6 +71,7 @@ class GaussianMixture:
         self.means: Tensor | None = None  # [K, D]
         self.covs: Tensor | None = None  # [K, D, D]
         self._chol_inv: Tensor | None = None  # [K, D, D], L_k^{-1} with Sigma_k = L_k L_k^T
+        self._kept: tuple[Tensor, Tensor] | None = None  # points [P, D], log-joint [P, K]
 
     @property
     def K(self) -> int:
@@ -79,29 +91,33 @@ class GaussianMixture:
         # EM runs on centred points so that the M-step's raw second moments do not cancel.
         shift = points.mean(0)  # [D]
         centred = points - shift
-        if self.means is not None and self.means.shape == (K, points.shape[1]):
-            assert self.log_weights is not None and self.covs is not None
-            log_weights, means, covs = (
-                p.to(points) for p in (self.log_weights, self.means, self.covs)
-            )
+        warm = self.means is not None and self.means.shape == (K, points.shape[1])
+        if warm:
+            log_weights, means, covs = (p.to(points) for p in self._fitted()[:3])
             means = means - shift
         else:
             log_weights, means, covs = self._initialise(centred, K)
         chol_inv = _cholesky_inverse(covs)
         alpha = self.cov_reg * P / K
         history: list[float] = []
+        converged = False
+        reused = self._known_rows(points) if warm else points.new_empty(0, K)
         for _ in range(self.max_iterations):
-            log_joint = _log_joint(centred, log_weights, means, chol_inv)  # [P, K]
+            fresh = _log_joint(centred[len(reused) :], log_weights, means, chol_inv)
+            log_joint = torch.cat([reused, fresh])  # [P, K]
+            reused = points.new_empty(0, K)  # the first E-step only
             log_norm = torch.logsumexp(log_joint, dim=1)  # [P]
             penalty = 0.5 * alpha * chol_inv.square().sum()  # alpha/2 sum_k tr(Sigma_k^{-1})
             history.append(float(log_norm.sum() - penalty))
             if len(history) > 1 and history[-1] - history[-2] < self.tolerance * P:
+                converged = True
                 break
             resp = torch.exp(log_joint - log_norm[:, None])  # [P, K]
             log_weights, means, covs = _m_step(centred, resp, alpha)
             chol_inv = _cholesky_inverse(covs)
         self.log_weights, self.means, self.covs = log_weights, means + shift, covs
         self._chol_inv = chol_inv
+        self._kept = (points.clone(), log_joint) if converged else None
         return history
 
     def log_likelihood(self, points: Tensor) -> Tensor:
@@ -141,7 +157,23 @@ class GaussianMixture:
 
     def _log_joint(self, points: Tensor) -> Tensor:
         log_weights, means, _, chol_inv = self._fitted()
-        return _log_joint(points, log_weights, means, chol_inv)
+        known = self._known_rows(points)
+        return torch.cat([known, _log_joint(points[len(known) :], log_weights, means, chol_inv)])
+
+    def _known_rows(self, points: Tensor) -> Tensor:
+        """The kept log-joint of the leading rows of ``points`` that continue the kept points
+        from some row s on (``[L, K]``, L = 0 when none do)."""
+        none = points.new_empty(0, self.K)
+        if self._kept is None or len(points) == 0:
+            return none
+        kept, log_joint = self._kept
+        if kept.shape[1] != points.shape[1] or kept.dtype != points.dtype:
+            return none
+        for start in (kept == points[0]).all(1).nonzero().flatten().tolist():
+            length = min(len(kept) - start, len(points))
+            if torch.equal(kept[start : start + length], points[:length]):
+                return log_joint[start : start + length]
+        return none
 
     def _initialise(self, points: Tensor, K: int) -> tuple[Tensor, Tensor, Tensor]:
         """k-means++ seeding and Lloyd iterations on standardised ``points`` (centred), then one
@@ -171,37 +203,82 @@ class GaussianMixture:
 
 def _log_joint(points: Tensor, log_weights: Tensor, means: Tensor, chol_inv: Tensor) -> Tensor:
     """``log w_k + log N(z_p | mu_k, Sigma_k)`` -> ``[P, K]``, with ``Sigma_k^{-1} = C_k^T C_k``
-    for ``C_k = chol_inv[k]`` lower triangular."""
+    for ``C_k = chol_inv[k]`` lower triangular; ``-inf`` where it is more than ``PRUNE_NATS``
+    below the point's best cluster (``r_pk < e^-50``: the responsibilities and the likelihood
+    change by less than float64's rounding).
+
+    Pruning: ``C_k`` is lower triangular, so the first m whitened coordinates depend on the
+    first m coordinates of z only and, for m = ceil(D / 4),
+        ``|C_k (z - mu_k)|^2 >= |C_k[:m, :m] (z[:m] - mu_k[:m])|^2``,
+    an upper bound on each log-joint for ``(m / D)^2`` of the work. The exact value is computed,
+    cluster by cluster, for the pairs whose bound is within ``BOUND_SLACK`` of the point's best
+    bound; a point whose best exact value is not ``PRUNE_NATS`` above every left-out bound has
+    all K computed.
+    """
     P, D = points.shape
-    K = chol_inv.shape[0]
-    # Whitened residuals C_k (z_p - mu_k): [P, K, D], as one product of the augmented points
-    # [z_p, 1] with [C_k, -C_k mu_k] stacked over k.
-    offset = (chol_inv @ means[:, :, None]).squeeze(-1)  # [K, D]
-    operator = torch.cat([chol_inv, -offset[:, :, None]], dim=2).reshape(K * D, D + 1)
-    augmented = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)  # [P, D + 1]
-    white = (augmented @ operator.T).view(P, K, D)
-    mahalanobis = torch.linalg.vector_norm(white, dim=-1).square()  # [P, K]
+    K = means.shape[0]
     half_log_det_precision = torch.diagonal(chol_inv, dim1=-2, dim2=-1).log().sum(-1)  # [K]
-    log_normal = half_log_det_precision - 0.5 * (mahalanobis + D * math.log(2 * math.pi))
-    return log_normal + log_weights
+    constant = log_weights + half_log_det_precision - 0.5 * D * math.log(2 * math.pi)  # [K]
+    augmented = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)  # [P, D + 1]
+    operator = _whitening(means, chol_inv)  # [K, D, D + 1]
+    m = -(-D // 4)
+    lead = torch.cat([points[:, :m], augmented[:, D:]], dim=1)  # [P, m + 1]
+    bound = constant - 0.5 * _mahalanobis(lead, _whitening(means[:, :m], chol_inv[:, :m, :m]))
+    candidate = bound >= bound.max(1, keepdim=True).values - BOUND_SLACK  # [P, K]
+    cluster, point = torch.nonzero(candidate.T, as_tuple=True)  # cluster by cluster
+    rows = augmented[point].split(torch.bincount(cluster, minlength=K).tolist())
+    white = torch.cat([row @ operator[k].T for k, row in enumerate(rows)])  # [pairs, D]
+    log_joint = torch.full((P, K), -math.inf, dtype=points.dtype, device=points.device)
+    log_joint[point, cluster] = constant[cluster] - 0.5 * white.square().sum(-1)
+    best = log_joint.max(1, keepdim=True).values
+    unsure = (~candidate & (bound > best - PRUNE_NATS)).any(1)  # [P]
+    if bool(unsure.any()):
+        log_joint[unsure] = constant - 0.5 * _mahalanobis(augmented[unsure], operator)
+    return log_joint
+
+
+def _whitening(means: Tensor, chol_inv: Tensor) -> Tensor:
+    """``[C_k, -C_k mu_k]`` ``[K, D, D + 1]``: applied to ``[z; 1]`` it gives ``C_k (z - mu_k)``."""
+    offset = (chol_inv @ means[:, :, None]).squeeze(-1)  # [K, D]
+    return torch.cat([chol_inv, -offset[:, :, None]], dim=2)
+
+
+def _mahalanobis(augmented: Tensor, operator: Tensor) -> Tensor:
+    """``|C_k (z_p - mu_k)|^2`` ``[P, K]`` for all pairs, as one product of the augmented
+    points ``[z_p; 1]`` ``[P, D + 1]`` with the stacked ``operator`` ``[K, D, D + 1]``."""
+    P = augmented.shape[0]
+    K, D, _ = operator.shape
+    return (augmented @ operator.reshape(K * D, D + 1).T).view(P, K, D).square().sum(-1)
 
 
 def _m_step(points: Tensor, resp: Tensor, alpha: float) -> tuple[Tensor, Tensor, Tensor]:
     """Log-weights ``[K]``, means ``[K, D]`` and covariances ``[K, D, D]`` from centred
     ``points: [P, D]`` and responsibilities ``resp: [P, K]`` (see :class:`GaussianMixture`).
 
-    The scatter comes from raw moments, ``sum_p r_pk z_p z_p^T - n_k mu_k mu_k^T``, for all
-    clusters in one ``[D, P] x [P, K D]`` product: about half the time of centring per cluster.
-    Its rounding error, about ``1e-16 n_k |z|^2``, stays far below ``alpha`` for centred
-    points unless they span ~1e4 or more.
+    The M-step of the responsibilities with every ``r_pk <= RESPONSIBILITY_FLOOR`` set to 0:
+    the mixture's points belong almost all to one cluster each, so the second moments are
+    summed per cluster over its own points, ``sum_{p: r_pk > floor} r_pk z_p z_p^T``, about
+    ``P D^2`` products in all instead of ``K P D^2``. Zeroing changes each ``n_k`` by at most
+    ``1e-20 P`` and each second moment by at most ``1e-20 P max_p |z_p|^2`` in norm, far
+    below ``alpha`` (a lower bound on the eigenvalues of ``n_k Sigma_k``) unless the points
+    span ~1e6.
+    The scatter comes from raw moments, ``sum_p r_pk z_p z_p^T - n_k mu_k mu_k^T``; its
+    rounding error, about ``1e-16 n_k |z|^2``, stays far below ``alpha`` for centred points
+    unless they span ~1e4 or more.
     """
     P, D = points.shape
     K = resp.shape[1]
+    resp = torch.where(resp > RESPONSIBILITY_FLOOR, resp, 0.0)
     # A floor keeps an emptied cluster finite; its weight is ~0 so it stays inert.
     counts = resp.sum(0).clamp_min(1e-10 * P)  # [K]
     means = (resp.T @ points) / counts[:, None]  # [K, D]
-    weighted = (resp[:, :, None] * points[:, None, :]).reshape(P, K * D)
-    second = (points.T @ weighted).view(D, K, D).transpose(0, 1)  # [K, D, D]
+    cluster, point = torch.nonzero(resp.T, as_tuple=True)  # the kept pairs, cluster by cluster
+    rows = points[point]  # [kept, D]
+    weighted = rows * resp[point, cluster][:, None]
+    sizes = torch.bincount(cluster, minlength=K).tolist()
+    second = torch.stack(
+        [a.T @ b for a, b in zip(rows.split(sizes), weighted.split(sizes), strict=True)]
+    )  # [K, D, D]
     scatter = second - counts[:, None, None] * means[:, :, None] * means[:, None, :]
     eye = torch.eye(D, dtype=points.dtype, device=points.device)
     covs = (scatter + alpha * eye) / counts[:, None, None]

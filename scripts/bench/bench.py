@@ -8,8 +8,8 @@
              the sums of its parts from metrics.jsonl (sampling, dynamics fits, C-steps,
              S-steps with their closed-loop checks) as ratios to the one-worker run's
              sampling; with ``--reference REV``, the same stream at git revision REV (checked
-             out into a temporary worktree) first, in the same run, and each wall time as a
-             ratio to it.
+             out into a temporary worktree) first, in the same run, its parts as ratios to
+             its own sampling, and each wall time as a ratio to it.
 - physics:   raw PyBullet stepping rate of this world (substeps/s: the same worlds, the arm
              held at q0 by constant gravity torques sent every substep, nothing else) against
              the rollout pipeline (initial controller, smoothed noise, gravity compensation,
@@ -217,6 +217,8 @@ def bench_default(task: PegTask, repeats: int, reference: str | None = None) -> 
                 subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force",
                                 str(tree)], check=True, capture_output=True)  # fmt: skip
             results["reference_wall_s"] = base["wall"]
+            for name in PARTS:
+                results[f"reference {name} / sampling"] = base[name] / base["sampling"]
         one = _default_stream(root, urdf, Path(tmp) / "one", ["--workers", "1"])
         default = _default_stream(root, urdf, Path(tmp) / "default", [])
     results["wall_s (1 worker)"] = one["wall"]

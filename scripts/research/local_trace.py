@@ -24,7 +24,8 @@ Per iteration it prints:
   evaluation, regression, cost expansion, step adaptation), p_pre's fit and the C-step,
   summed at the end as ratios to sampling (the trace's own extra fit is counted apart).
 
-``--save-samples`` keeps the samples for replaying the fits (``scripts/bench/bench_fit.py``).
+``--save-samples`` keeps the samples, the run and condition, and the states p_pre was
+linearised around at each iteration, for replaying the fits (``scripts/bench/bench_fit.py``).
 The loop stops, as the stream's, after ``success_phases`` iterations with a success, or at
 ``--iterations``.
 """
@@ -135,8 +136,8 @@ def main() -> None:
     parser.add_argument(
         "--save-samples",
         default=None,
-        help="write every iteration's samples and the sampling CPU time to this file "
-        "(torch.save), for scripts/bench/bench_fit.py --samples",
+        help="write every iteration's samples, the states p_pre was linearised around and the "
+        "sampling CPU time to this file (torch.save), for scripts/bench/bench_fit.py --samples",
     )
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -161,6 +162,7 @@ def main() -> None:
     iterations = args.iterations or config.max_iterations
     p_pre: LinearGaussian | None = None
     history: list[Trajectories] = []
+    accepted_x: list[torch.Tensor] = []  # the states p_pre was linearised around, per iteration
     alpha, phases = config.alpha, 0
     previous: tuple[LinearDynamics, Trajectories] | None = None  # the last samples and their fit
     print(f"condition {args.condition} at {offset}, {config.local}")
@@ -179,6 +181,7 @@ def main() -> None:
         clock.lap("fit()")
         if policy is not None:
             assert learner.accepted is not None
+            accepted_x.append(learner.accepted.x)
             p_pre = linearize_policy(policy, learner.accepted.x, policy_prior)
             clock.lap("p_pre fit")
         anchor = p_pre if p_pre is not None and config.cstep_anchor == "pre" else learner.p_cur
@@ -210,9 +213,9 @@ def main() -> None:
     task.close()
     sample_s = clock.parts["sampling"]
     if args.save_samples is not None:
-        torch.save(
-            {"samples": [tuple(h) for h in history], "sample_s": sample_s}, args.save_samples
-        )
+        saved = {"samples": [tuple(h) for h in history], "sample_s": sample_s,
+                 "run": args.run, "condition": args.condition, "accepted_x": accepted_x}  # fmt: skip
+        torch.save(saved, args.save_samples)
     print(
         "CPU seconds (ratio to sampling); fit() and its parts, p_pre's fit: the stream's time_fit"
     )
