@@ -48,6 +48,7 @@ from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.evaluation.square import SquareConfig, square_stream
 from lolgps_torch.lolgps import METHODS, StreamConfig, make_learner, method_config
 from lolgps_torch.progress import Bar
+from lolgps_torch.robot.placement import pinned
 from lolgps_torch.task import PegTask, TaskConfig
 
 STREAM_FLAGS = ConfigFlags(
@@ -159,6 +160,9 @@ def plan_run(args: argparse.Namespace) -> Plan:
         conditions, stages = default_training_stream(AreaConfig(), args.seed)
     task = replace(task, placement=replace(task.placement, positions=tuple(conditions)))
     folder = RunFolder(args.out or os.path.join("runs", f"{args.method}-seed{args.seed}"))
+    if args.resume and folder.has_config():  # the hole and start pose the run was placed at
+        saved = folder.task_config(folder.read_config()["task"]).placement
+        task = replace(task, placement=replace(task.placement, mouth=saved.mouth, q0=saved.q0))
     urdf_text = portable_urdf(args.urdf, task.package_path)
     config = as_stored(
         {
@@ -252,8 +256,10 @@ def main() -> None:
         plan.task, plan.stream.local.samples, device=str(plan.device), workers=workers(args)
     )
     try:  # the task's placement has checked every condition's reachability
-        if not args.resume:
-            plan.folder.start(plan.config, plan.urdf_text)
+        if not args.resume:  # recorded with the hole and start pose it was placed at
+            placed = replace(plan.task, placement=pinned(plan.task.placement, task.geometry))
+            config = {**plan.config, "task": task_json(placed, plan.urdf_text)}
+            plan.folder.start(config, plan.urdf_text)
         summary = learn(plan, task)
     finally:
         task.close()

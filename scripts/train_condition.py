@@ -29,6 +29,7 @@ from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.data.run_folder import RunFolder, as_stored, portable_urdf, task_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+from lolgps_torch.robot.placement import pinned
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 
@@ -102,7 +103,8 @@ def main() -> None:
     task = PegTask(tcfg, config.samples, device=str(device), workers=workers(args))
     try:  # the placement has checked that the hole is reachable
         settings = {"hole": list(offset), "seed": args.seed, "iterations": args.iterations}
-        record = {**settings, "task": task_json(tcfg, urdf_text), "local": asdict(config)}
+        placed = replace(tcfg, placement=pinned(tcfg.placement, task.geometry))
+        record = {**settings, "task": task_json(placed, urdf_text), "local": asdict(config)}
         folder.start(as_stored(record), urdf_text)
         learner = LocalLearner(task, offset, config, seed=args.seed)
         taken = learn(learner, folder, args.iterations, args.stop_at_success)

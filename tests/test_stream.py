@@ -56,6 +56,29 @@ def test_ci_stream_distils_and_replays_both_conditions(small_run: Path) -> None:
     assert config["conditions"] == [[0.0, 0.0], [0.01, -0.01]]
 
 
+def test_a_run_reads_back_at_the_hole_and_start_pose_it_was_placed_at(small_run: Path) -> None:
+    from dataclasses import replace
+
+    from lolgps_torch.lolgps.run import load_run
+    from lolgps_torch.robot.placement import place_task
+
+    run = load_run(small_run / "run")
+    placement = run.info.task.placement
+    assert placement.mouth is not None and placement.q0 is not None
+    task = run.make_task(n_worlds=1)
+    try:
+        assert task.geometry.nominal_mouth == placement.mouth and task.geometry.q0 == placement.q0
+        # the same as placing anew today, and kept even where the placement would now differ
+        unpinned = replace(placement, mouth=None, q0=None)
+        depth = run.info.task.world.depth
+        fresh = place_task(task.arm, task.kinematics, unpinned, depth)
+        assert fresh.nominal_mouth == pytest.approx(placement.mouth, abs=1e-12)
+        moved = replace(placement, reach_fraction=0.45)
+        assert place_task(task.arm, task.kinematics, moved, depth) == task.geometry
+    finally:
+        task.close()
+
+
 def test_same_seed_gives_same_summary(small_run: Path, tmp_path: Path) -> None:
     log = tmp_path / "again.log"
     process = start_script(ci_stream_command(tmp_path, tmp_path / "again"), log)

@@ -25,7 +25,7 @@ gets the same hole and start pose.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -60,6 +60,9 @@ class PlacementConfig:
         of reach.
     :param start_offset: peg tip at the start pose relative to the nominal hole mouth.
     :param q0: explicit start pose (rad); derived by inverse kinematics when None.
+    :param mouth: the nominal hole mouth (m, world frame), fixed; derived by the placement when
+        None.  A run folder records the mouth and q0 its task was placed at (:func:`pinned`),
+        so that reading it back gives the same task whatever the placement of the code.
     :param ik_tolerance: largest point error (m) accepted as reached.
     :param limit_margin: fraction of each joint's range kept free at both ends.
     :param positions: the hole offsets (m) the placement must reach (the stream's conditions);
@@ -77,6 +80,7 @@ class PlacementConfig:
     mouth_below_shoulder: float = 0.15
     start_offset: tuple[float, float, float] = (-0.10, 0.0, 0.20)
     q0: tuple[float, ...] | None = None
+    mouth: tuple[float, float, float] | None = None
     ik_tolerance: float = 1e-3
     limit_margin: float = 0.05
     positions: tuple[Position, ...] = ()
@@ -92,6 +96,10 @@ class PlacementConfig:
             )
         if len(self.start_offset) != 3 or not all(map(math.isfinite, self.start_offset)):
             raise LolgpsError(f"start offset needs 3 finite numbers, got {self.start_offset}")
+        if self.mouth is not None and (
+            len(self.mouth) != 3 or not all(map(math.isfinite, self.mouth))
+        ):
+            raise LolgpsError(f"the hole mouth needs 3 finite numbers (m), got {self.mouth}")
         if self.q0 is not None and not all(map(math.isfinite, self.q0)):
             raise LolgpsError(f"--q0 must be finite numbers (rad), got {list(self.q0)}")
         if not self.ik_tolerance > 0:
@@ -114,6 +122,11 @@ class TaskGeometry:
 
     nominal_mouth: tuple[float, float, float]
     q0: tuple[float, ...]
+
+
+def pinned(config: PlacementConfig, geometry: TaskGeometry) -> PlacementConfig:
+    """``config`` with the hole mouth and the start pose fixed at ``geometry``'s."""
+    return replace(config, mouth=geometry.nominal_mouth, q0=geometry.q0)
 
 
 def vertical_peg_targets(tip: Tensor, separation: float) -> Tensor:
@@ -266,6 +279,7 @@ def place_task(
     """The first nominal hole (module docstring) at which the start pose and the floor of the
     hole at every position are reachable with the peg pointing down; the start pose from IK
     (or ``config.q0``).  A :class:`LolgpsError` naming what to change when there is none.
+    With ``config.mouth`` given, that mouth and its start pose, without a search.
 
     The candidates are screened by how near each target lies to the random down-pointing
     poses' tips; the preferred one, then the screened ones in order, are solved by IK in
@@ -276,6 +290,9 @@ def place_task(
     """
     if config.q0 is not None and len(config.q0) != arm.dof:
         raise LolgpsError(f"--q0 needs {arm.dof} values, got {len(config.q0)}")
+    if config.mouth is not None:
+        mouth = torch.tensor(config.mouth, dtype=torch.float64, device=kin.device)
+        return _geometry(arm, kin, config, mouth, torch.tensor(config.start_offset).to(mouth))
     shoulder, radius, cloud_q, cloud_tip = _workspace(arm, kin)
     positions = torch.tensor(config.positions or ((0.0, 0.0),), dtype=torch.float64)
     positions = positions.to(kin.device)
