@@ -146,6 +146,14 @@ class PegTask:
         Minv = torch.linalg.inv(M)[idx][:, idx]
         return (1.0 / torch.diagonal(Minv)).to(dtype=torch.float64, device=self.device)
 
+    def joint_damping(self) -> Tensor:
+        """The joint damping b (N m s/rad) PyBullet applies, per actuated joint."""
+        world = self.sampler.worlds[0]
+        b = [
+            pb.getJointInfo(world.body, j, physicsClientId=world.client)[6] for j in world.joint_ids
+        ]
+        return torch.tensor(b, dtype=torch.float64, device=self.device)
+
     def sample(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
         """One rollout per offset, each run alone (on the worker processes, if any), scored by
         the cost."""

@@ -52,7 +52,9 @@ class LocalConfig:
     """Settings of the per-condition learner.
 
     :param samples: rollouts per iteration (N).
-    :param init_variance: initial exploration variance, in (torque / effective inertia)^2,
+    :param init_variance: initial exploration variance, in (torque / effective inertia)^2
+        (the inertia including the damping over the noise's correlation time, see
+        :func:`initial_controller`),
         i.e. joint accelerations (rad/s^2)^2, so one value fits arms of any size.
     :param init_omega: natural frequency (rad/s) of the soft PD hold of the start pose;
         gains ``kp = m omega^2``, ``kd = 2 m omega`` with m each joint's effective inertia.
@@ -108,8 +110,18 @@ class Accepted(NamedTuple):
 
 
 def initial_controller(task: PegTask, config: LocalConfig) -> LinearGaussian:
-    """Soft PD hold of q0 with exploration noise, scaled by each joint's effective inertia."""
-    m = task.effective_inertia()
+    """Soft PD hold of q0 with exploration noise, both scaled per joint by the inertia the joint
+    presents over the noise's correlation time ``tau = noise_smoothing dt``:
+
+        ``m_j = 1 / (M(q0)^-1)_jj + b_j tau``
+
+    with b_j the joint's damping.  A torque held for tau changes the joint's velocity by about
+    ``torque tau / m_j`` whether inertia or damping resists it, so the same ``init_variance``
+    explores every joint of every arm alike; with inertia alone, a heavily damped joint (the
+    published xArm7's b / m reaches 600 per second) hardly moved under its noise and its
+    controllers took 14-25 iterations against 11-12 (docs/RESULTS.md section 16)."""
+    tau = config.noise_smoothing * task.config.world.dt
+    m = task.effective_inertia() + task.joint_damping() * tau
     lay = task.layout
     return hold_controller(
         task.T,
