@@ -33,7 +33,14 @@ from lolgps_torch.robot.placement import pinned
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 
-LOCAL_FLAGS = ConfigFlags(LocalConfig(), renames={"dynamics-prior": ("dynamics.prior",)})
+LOCAL_FLAGS = ConfigFlags(
+    LocalConfig(),
+    renames={
+        "dynamics-prior": ("dynamics.prior",),
+        "step-mult-max": ("cstep.step_mult_max",),
+        "step-mult-init": ("cstep.step_mult_init",),
+    },
+)
 
 
 def parse_args() -> argparse.Namespace:

@@ -47,6 +47,25 @@ def test_kuka_learns_the_nominal_hole(tmp_path: Path) -> None:
     assert summary["noiseless_final_distance"] < 0.06
 
 
+def test_train_condition_sets_the_step_multiplier(tmp_path: Path) -> None:
+    """--step-mult-init and --step-mult-max reach the C-step: epsilon = kl_step * step_mult * T
+    = 1 * 3 * 100 on the first iteration, and the run's config records both."""
+    records = _train(
+        tmp_path,
+        "--urdf",
+        "robots/kuka_peg.urdf",
+        "--iterations",
+        "1",
+        "--step-mult-init",
+        "3",
+        "--step-mult-max",
+        "5",
+    )
+    assert records[0]["epsilon"] == pytest.approx(300.0)
+    cstep = json.loads((tmp_path / "run" / "config.json").read_text())["local"]["cstep"]
+    assert (cstep["step_mult_init"], cstep["step_mult_max"]) == (3.0, 5.0)
+
+
 def test_panda_learns_the_nominal_hole(tmp_path: Path) -> None:
     """Another arm, unchanged code: pybullet_data's Panda with an attached peg."""
     panda = os.path.join(pybullet_data.getDataPath(), "franka_panda/panda.urdf")

@@ -34,8 +34,9 @@ class ModelPrior:
 
     The model's weight is ``w_t = 1 / (1 + (rho_t / tolerance)^2)`` with the relative one-step
     error ``rho_t = |r|_t / |Y - x|_t`` (norms over the step's samples; x the first dB entries
-    of X). It is ~1 in free space, where the model is exact, and falls where contact makes it
-    wrong. Given a data prior (mu_d, Phi_d / m_d), the prior is the moment-matched mixture
+    of X). It falls where contact makes the model wrong, and also where the samples spread
+    wider than the linearisation at their mean holds; it is ~1 where neither happens. Given a
+    data prior (mu_d, Phi_d / m_d), the prior is the moment-matched mixture
         ``mu0 = w mu_t + (1 - w) mu_d``,
         ``Phi = m [w Sigma_t + (1 - w) Sigma_d + w (1 - w) (mu_t - mu_d)(mu_t - mu_d)^T]``,
     ``m = n0 = strength``; without one, the model's Gaussian alone.

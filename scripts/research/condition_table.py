@@ -6,6 +6,8 @@ print the markdown table of first successful iteration and final noiseless dista
 
 An iteration succeeds when at least --min-success (default 3) of its 5 samples end with the tip
 within 0.06 m of the target. Each run's metrics.jsonl and summary.json stay under --out.
+--dynamics-prior, --step-mult-init and --step-mult-max are passed on to every run (the C-step's
+multiplier of ``epsilon = kl_step * step_mult * T``, docs/ALGORITHM.md section 5).
 """
 
 from __future__ import annotations
@@ -19,17 +21,19 @@ from pathlib import Path
 from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder, read_json
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.trajopt.config import CStepConfig
 
 TRAIN_CONDITION = Path(__file__).resolve().parents[1] / "train_condition.py"
 
 
 def learn(
-    urdf: str, hole: tuple[float, float], seed: int, iterations: int, out: str, prior: str
+    urdf: str, hole: tuple[float, float], seed: int, iterations: int, out: str, local: list[str]
 ) -> RunFolder:
-    """One run of scripts/train_condition.py into ``out`` with the dynamics prior ``prior``."""
+    """One run of scripts/train_condition.py into ``out`` with the local learner's flags
+    ``local``."""
     cmd = [sys.executable, str(TRAIN_CONDITION), "--urdf", urdf, "--hole", str(hole[0])]
     cmd += [str(hole[1]), "--seed", str(seed), "--iterations", str(iterations), "--out", out]
-    cmd += ["--dynamics-prior", prior]
+    cmd += local
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise LolgpsError(f"{' '.join(cmd)} failed: {proc.stderr.strip().splitlines()[-1]}")
@@ -52,8 +56,18 @@ def main() -> None:
     parser.add_argument(
         "--dynamics-prior", choices=("gmm", "model"), default="gmm", help="passed on"
     )
+    steps = CStepConfig()
+    parser.add_argument(
+        "--step-mult-init", type=float, default=steps.step_mult_init, help="passed on"
+    )
+    parser.add_argument(
+        "--step-mult-max", type=float, default=steps.step_mult_max, help="passed on"
+    )
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
+    local = ["--dynamics-prior", args.dynamics_prior]
+    local += ["--step-mult-init", str(args.step_mult_init)]
+    local += ["--step-mult-max", str(args.step_mult_max)]
     if len(args.holes) % 2:
         raise LolgpsError("--holes needs dx dy pairs")
     holes = list(zip(args.holes[::2], args.holes[1::2], strict=True))
@@ -64,7 +78,7 @@ def main() -> None:
         for dx, dy in holes:
             for seed in args.seeds:
                 out = os.path.join(args.out, f"{arm}_{dx:+.3f}_{dy:+.3f}_s{seed}")
-                folder = learn(urdf, (dx, dy), seed, args.iterations, out, args.dynamics_prior)
+                folder = learn(urdf, (dx, dy), seed, args.iterations, out, local)
                 rates = [r["success_rate"] for r in folder.read_metrics()]
                 first = next(
                     (i for i, r in enumerate(rates) if r * 5 >= args.min_success - 1e-9), None
