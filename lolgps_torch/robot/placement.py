@@ -136,6 +136,24 @@ def vertical_peg_targets(tip: Tensor, separation: float) -> Tensor:
     return torch.stack([tip, top], dim=-2)
 
 
+_MU = 1e-4  # damping of the least-squares steps
+
+
+def _damped_step(
+    q: Tensor, J: Tensor, e: Tensor, bounds: tuple[Tensor, Tensor], drift: Tensor | None = None
+) -> Tensor:
+    """One damped least-squares step towards point errors ``e [B, 6]`` with Jacobians
+    ``J [B, 6, n]``: ``dq = (J^T J + mu I)^{-1} (J^T e + drift)``, shortened to at most 0.2 rad
+    (a trust region), the new pose clamped to ``bounds``."""
+    eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device)
+    rhs = (J.transpose(-1, -2) @ e[..., None])[..., 0]
+    dq = torch.linalg.solve(
+        J.transpose(-1, -2) @ J + _MU * eye, rhs if drift is None else rhs + drift
+    )
+    dq = dq * (0.2 / dq.norm(dim=-1, keepdim=True).clamp(min=0.2))
+    return (q + dq).clamp(*bounds)
+
+
 def solve_ik(
     kin: PegKinematics, arm: ArmSpec, targets: Tensor, margin: float, iterations: int = 200
 ) -> tuple[Tensor, Tensor]:
@@ -169,19 +187,15 @@ def solve_ik_batch(
     if seeds is not None:
         q[1::starts] = seeds.clamp(lo + margin * span, hi - margin * span)
     goal = targets.reshape(K, 1, 6).expand(K, starts, 6).reshape(K * starts, 6)
-    eye = torch.eye(n, dtype=torch.float64, device=kin.device)
     for _ in range(iterations):
         pts, J = kin.points_and_jacobian(q)
         e = goal - pts.reshape(-1, 6)
         solved = e.norm(dim=-1).reshape(K, starts).min(dim=-1).values < 1e-7
         if bool(solved.reshape(-1, group or K).all(dim=-1).any()):
             break
-        mu = 1e-4
-        JtJ = J.transpose(-1, -2) @ J + mu * eye
-        rhs = (J.transpose(-1, -2) @ e[..., None])[..., 0] + mu * 0.1 * (mid - q) / span
-        dq = torch.linalg.solve(JtJ, rhs)
-        dq = dq * (0.2 / dq.norm(dim=-1, keepdim=True).clamp(min=0.2))  # trust region 0.2 rad
-        q = (q + dq).clamp(lo + margin * span, hi - margin * span)
+        q = _damped_step(
+            q, J, e, (lo + margin * span, hi - margin * span), _MU * 0.1 * (mid - q) / span
+        )
     err = (goal - kin.points(q).reshape(-1, 6)).norm(dim=-1).reshape(K, starts)
     q = q.reshape(K, starts, n)
     ok = err < torch.clamp(err.min(dim=-1, keepdim=True).values * 1.01 + 1e-9, min=1e-4)
@@ -222,7 +236,6 @@ def follow(
     lo = torch.tensor(arm.lower, dtype=torch.float64, device=kin.device)
     hi = torch.tensor(arm.upper, dtype=torch.float64, device=kin.device)
     span = hi - lo
-    eye = torch.eye(arm.dof, dtype=torch.float64, device=kin.device)
     start = kin.points(q0)  # [2, 3]
     q = q0.expand(targets.shape[0], -1).clone()
     least = torch.full((targets.shape[0],), math.inf, dtype=torch.float64, device=kin.device)
@@ -233,9 +246,7 @@ def follow(
             e = goal - pts.reshape(-1, 6)
             if bool((e.norm(dim=-1) < 1e-7).all()):
                 break
-            dq = torch.linalg.solve(J.mT @ J + 1e-4 * eye, (J.mT @ e[..., None])[..., 0])
-            dq = dq * (0.2 / dq.norm(dim=-1, keepdim=True).clamp(min=0.2))
-            q = (q + dq).clamp(lo + margin * span, hi - margin * span)
+            q = _damped_step(q, J, e, (lo + margin * span, hi - margin * span))
         least = torch.minimum(least, dexterity(kin.points_and_jacobian(q)[1], rank))
     error = (targets.reshape(-1, 6) - kin.points(q).reshape(-1, 6)).norm(dim=-1)
     return error, least
