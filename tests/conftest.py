@@ -256,9 +256,7 @@ def check_published_arm(urdf: str, dof: int, ee_link: str | None = None) -> None
         assert float(error.max()) <= placement.ik_tolerance
         # and from the start pose, continuously, as a controller would move (placement.follow)
         rank = generic_rank(task.kinematics, task.q0 + 0.1 * torch.randn(8, task.arm.dof))
-        error, least = follow(
-            task.kinematics, task.arm, task.q0, task.targets(list(stream)), 0.0, rank
-        )
+        error, least = follow(task.kinematics, task.arm, task.q0, task.targets(list(stream)), rank)
         assert float(error.max()) <= placement.ik_tolerance
         assert float(least.min()) >= placement.dexterity * reach(task.arm, task.kinematics)[1]
         learner = LocalLearner(task, stream[0], LocalConfig(samples=2), seed=0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Iterator
 
@@ -12,7 +13,7 @@ import torch
 
 from lolgps_torch.cost.l12 import CostConfig, PegCost, to_quadratic
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.arm import ArmSpec, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import (
     PlacementConfig,
@@ -57,6 +58,39 @@ def test_fk_matches_pybullet(urdf: str) -> None:
     assert torch.allclose(got, torch.tensor(np.stack(expected)), atol=1e-6, rtol=0)
 
 
+def test_follow_may_pass_within_the_placement_margin_of_a_joint_limit(task: PegTask) -> None:
+    """The margin keeps the placed poses off the limits; the way to a floor may use the whole
+    range: with a joint's limit set just beyond where the path ends, the floor is reached."""
+    kin, arm = task.kinematics, task.arm
+    floor = task.targets([(0.02, -0.02)])
+    q_end = _follow_to(kin, arm, task.q0, floor)
+    moved = int((q_end - task.q0).abs().argmax())
+    span = arm.upper[moved] - arm.lower[moved]
+    if float(q_end[moved]) > float(task.q0[moved]):  # the limit 1 % of the range beyond the end
+        limits = {"upper": _set(arm.upper, moved, float(q_end[moved]) + 0.01 * span)}
+    else:
+        limits = {"lower": _set(arm.lower, moved, float(q_end[moved]) - 0.01 * span)}
+    tight = dataclasses.replace(arm, **limits)
+    error, _ = follow(kin, tight, task.q0, floor, 5)
+    assert float(error[0]) < 1e-6
+
+
+def _follow_to(
+    kin: PegKinematics, arm: ArmSpec, q0: torch.Tensor, targets: torch.Tensor
+) -> torch.Tensor:
+    """The pose at which :func:`follow`'s damped least squares ends (its last step, repeated)."""
+    q = q0.clone()
+    for _ in range(200):
+        points, jac = kin.points_and_jacobian(q)
+        e = targets.reshape(-1) - points.reshape(-1)
+        q = q + torch.linalg.lstsq(jac, e).solution
+    return q
+
+
+def _set(values: tuple[float, ...], index: int, value: float) -> tuple[float, ...]:
+    return tuple(value if i == index else v for i, v in enumerate(values))
+
+
 def test_an_offset_out_of_reach_is_named(task: PegTask) -> None:
     task.check_reachable((0.02, -0.02))
     with pytest.raises(LolgpsError, match=r"^hole offset \(\+2\.000, \+0\.000\) m is out of the"):
@@ -67,13 +101,13 @@ def test_follow_reaches_every_floor_from_q0_and_stops_short_beyond_reach(task: P
     kin, arm = task.kinematics, task.arm
     floors = task.targets([(0.02, -0.02), (-0.02, 0.02)])
     _, radius = reach(arm, kin)
-    error, least = follow(kin, arm, task.q0, floors, 0.05, 5)
+    error, least = follow(kin, arm, task.q0, floors, 5)
     assert float(error.max()) < 1e-6
     assert float(least.min()) > 0.01 * radius
     beyond = vertical_peg_targets(
         torch.tensor([[2.0 * radius, 0.0, 0.0]], dtype=torch.float64), 0.15
     )
-    error, least = follow(kin, arm, task.q0, beyond, 0.05, 5)
+    error, least = follow(kin, arm, task.q0, beyond, 5)
     assert float(error[0]) > 0.5  # the arm stretches towards it and stops
     assert float(least[0]) < 0.01 * radius  # stretched: near a singular pose
 

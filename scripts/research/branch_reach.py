@@ -61,7 +61,7 @@ def table(path: str) -> list[str]:
     hi = torch.tensor(arm.upper, dtype=torch.float64)
     generic = lo + (hi - lo) * torch.rand(64, arm.dof, generator=torch.Generator().manual_seed(0))
     rank = generic_rank(kin, generic.to(torch.float64))
-    error, least = follow(kin, arm, q0, holes, task.placement.limit_margin, rank)
+    error, least = follow(kin, arm, q0, holes, rank)
     summary = folder.read_summary()["conditions"]
     rows = []
     for c, (dx, dy) in enumerate(info.conditions):
