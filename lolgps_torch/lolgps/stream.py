@@ -49,13 +49,19 @@ from lolgps_torch.lolgps.distillation import (
     label,
 )
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate, rehearse
-from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
+from lolgps_torch.policy import (
+    GaussianPolicy,
+    PolicyConfig,
+    jacobian_controller,
+    linearize_policy,
+    policy_actor,
+)
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import LinearGaussian, Trajectories
 
 AlphaSchedule = Literal["constant", "dynamic"]
-Transfer = Literal["none", "policy"]
+Transfer = Literal["none", "policy", "start"]
 CStepAnchor = Literal["previous", "pre"]
 Log = Callable[[IterationRecord | DistillRecord], None]
 
@@ -143,10 +149,12 @@ class Outcome(NamedTuple):
 
 
 class Spent(NamedTuple):
-    """Iterations and rollouts already spent at a condition."""
+    """Iterations and rollouts already spent at a condition, and the iterations with
+    successful samples that local learning still needs there (None: ``success_phases``)."""
 
     iterations: int
     rollouts: int
+    phases: int | None = None
 
 
 NOTHING_SPENT = Spent(0, 0)
@@ -269,8 +277,12 @@ class StreamLearner:
         cfg = self.config
         if cfg.transfer == "none" or linearize is None:
             return None, NOTHING_SPENT
-        if not policy_distances(self.task, self.policy, [learner.offset])[0] < self.threshold:
+        probe = self.task.sample(policy_actor(self.policy), [learner.offset])
+        if not probe.final_distance[0] < self.threshold:
             return None, Spent(0, 1)
+        if cfg.transfer == "start":
+            learner.p_cur = jacobian_controller(self.policy, probe.x[0], learner.p_cur.cov)
+            return None, Spent(0, 1, cfg.transfer_phases)
         found = Successes()
         teacher = PolicyTeacher(copy.deepcopy(self.policy).eval(), self.task.T)
         for i in range(cfg.transfer_phases):
@@ -309,7 +321,7 @@ class StreamLearner:
                 self.log(record)
                 found.add(samples, Labels(p_cur, p_pre, i))
                 alpha = cfg.next_alpha(alpha)
-                if len(found.kept) >= cfg.success_phases:
+                if len(found.kept) >= (spent.phases or cfg.success_phases):
                     break
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"

@@ -2,7 +2,7 @@
 S-step."""
 
 from lolgps_torch.policy.actor import policy_actor
-from lolgps_torch.policy.linearize import linearize_policy
+from lolgps_torch.policy.linearize import jacobian_controller, linearize_policy
 from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
 from lolgps_torch.policy.sstep import distill, kl_loss, optimal_variance
 
@@ -10,6 +10,7 @@ __all__ = [
     "GaussianPolicy",
     "PolicyConfig",
     "distill",
+    "jacobian_controller",
     "kl_loss",
     "linearize_policy",
     "optimal_variance",

@@ -42,3 +42,25 @@ def linearize_policy(
         niw = prior.evaluate(x, u)
         K, k, S = gaussian_regression(x, u, niw, regression_reg)
         return LinearGaussian(K=K, k=k, cov=S + policy.covariance())
+
+
+def jacobian_controller(policy: GaussianPolicy, x: Tensor, cov: Tensor) -> LinearGaussian:
+    """The policy's first-order expansion along one trajectory, as a controller:
+
+        ``K_t = d mu_theta / dx (x_t)``,  ``k_t = mu_theta(x_t) - K_t x_t``,  covariance ``cov``
+
+    so that ``K_t x + k_t = mu_theta(x_t) + K_t (x - x_t)``: the policy's own feedback near the
+    states ``x: [T, dX]`` it visits (autograd Jacobians, exact, not a regression on samples).
+
+    :param cov: the controller's covariance, ``[T, dU, dU]``.
+    :return: ``K: [T, dU, dX]``, ``k: [T, dU]``, ``cov``.
+    """
+    if x.ndim != 2 or x.shape[-1] != policy.dX or cov.shape != (x.shape[0], policy.dU, policy.dU):
+        raise LolgpsError(
+            f"expected states [T, {policy.dX}] and covariances [T, {policy.dU}, {policy.dU}], "
+            f"got {tuple(x.shape)} and {tuple(cov.shape)}"
+        )
+    with torch.no_grad():
+        K = torch.func.vmap(torch.func.jacrev(policy))(x)  # [T, dU, dX]
+        k = policy(x) - (K @ x.unsqueeze(-1)).squeeze(-1)
+    return LinearGaussian(K=K, k=k, cov=cov)
