@@ -103,6 +103,7 @@ class StreamConfig:
     max_iterations: int = 25
     transfer: Transfer = "none"
     transfer_phases: int = 3
+    transfer_noise: float = 0.3
     repairs: int = 6
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
@@ -128,6 +129,7 @@ class StreamConfig:
                 "max_iterations": self.max_iterations >= 1,
                 "repairs": self.repairs >= 0,
                 "transfer_phases": self.transfer_phases >= 1,
+                "transfer_noise": 0.0 < self.transfer_noise < float("inf"),
                 "seed": self.seed >= 0,
             },
         )
@@ -281,7 +283,8 @@ class StreamLearner:
         if not probe.final_distance[0] < self.threshold:
             return None, Spent(0, 1)
         if cfg.transfer == "start":
-            learner.p_cur = jacobian_controller(self.policy, probe.x[0], learner.p_cur.cov)
+            cov = learner.p_cur.cov * cfg.transfer_noise**2
+            learner.p_cur = jacobian_controller(self.policy, probe.x[0, : self.task.T], cov)
             return None, Spent(0, 1, cfg.transfer_phases)
         found = Successes()
         teacher = PolicyTeacher(copy.deepcopy(self.policy).eval(), self.task.T)
