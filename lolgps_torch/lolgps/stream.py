@@ -85,6 +85,8 @@ class StreamConfig:
         or rehearse the policy instead where its noiseless rollout already succeeds (policy:
         fewer rollouts, but lower success on the test areas, docs/RESULTS.md section 9).
     :param transfer_phases: iterations of the policy's own rollouts a rehearsal takes.
+    :param transfer_noise: with transfer start, the exploration's standard deviation as a
+        fraction of the initial controller's.
     :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0: one S-step, as in the paper; 6 rather than 3 reached 69
         instead of 67 of 72 positions on 9 runs, docs/RESULTS.md section 14.1).
