@@ -85,6 +85,9 @@ class StreamConfig:
         or rehearse the policy instead where its noiseless rollout already succeeds (policy:
         fewer rollouts, but lower success on the test areas, docs/RESULTS.md section 9).
     :param transfer_phases: iterations of the policy's own rollouts a rehearsal takes.
+    :param transfer_precision: with transfer start, how close to the target (m) the policy's
+        noiseless probe must end: a completed insertion ends 1-2 mm from the floor, a peg
+        jammed in the funnel 1-5 cm above it (a success by ``success_threshold``).
     :param transfer_noise: with transfer start, the exploration's standard deviation as a
         fraction of the initial controller's.
     :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
@@ -106,6 +109,7 @@ class StreamConfig:
     transfer: Transfer = "none"
     transfer_phases: int = 3
     transfer_noise: float = 0.3
+    transfer_precision: float = 0.005
     repairs: int = 6
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
@@ -132,6 +136,7 @@ class StreamConfig:
                 "repairs": self.repairs >= 0,
                 "transfer_phases": self.transfer_phases >= 1,
                 "transfer_noise": 0.0 < self.transfer_noise < float("inf"),
+                "transfer_precision": 0.0 < self.transfer_precision < float("inf"),
                 "seed": self.seed >= 0,
             },
         )
@@ -285,6 +290,8 @@ class StreamLearner:
         if not probe.final_distance[0] < self.threshold:
             return None, Spent(0, 1)
         if cfg.transfer == "start":
+            if not probe.final_distance[0] < cfg.transfer_precision:
+                return None, Spent(0, 1)
             cov = learner.p_cur.cov * cfg.transfer_noise**2
             learner.p_cur = jacobian_controller(self.policy, probe.x[0, : self.task.T], cov)
             return None, Spent(0, 1, cfg.transfer_phases)
