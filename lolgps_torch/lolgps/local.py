@@ -162,13 +162,18 @@ class LocalLearner:
     ) -> None:
         self.task, self.offset, self.config = task, offset, config
         self.generator = torch.Generator().manual_seed(seed)
-        self.p_cur = initial_controller(task, config)
-        model = task.model.linearize if config.dynamics.prior == "model" else None
-        self.fitter = DynamicsFitter(config.dynamics, model)
-        self.step_mult = config.cstep.step_mult_init
+        self.targets = task.targets([offset])[0]
+        self.restart()
+
+    def restart(self) -> None:
+        """Back to the initial controller, an empty dynamics fit and the initial step size (the
+        sampling's generator runs on)."""
+        self.p_cur = initial_controller(self.task, self.config)
+        model = self.task.model.linearize if self.config.dynamics.prior == "model" else None
+        self.fitter = DynamicsFitter(self.config.dynamics, model)
+        self.step_mult = self.config.cstep.step_mult_init
         self.accepted: Accepted | None = None
         self.start_cost = math.inf  # the first iteration's mean total cost
-        self.targets = task.targets([offset])[0]
 
     def sample(self, p_act: LinearGaussian) -> Trajectories:
         """N rollouts of ``p_act`` at this condition."""

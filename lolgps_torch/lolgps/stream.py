@@ -333,6 +333,9 @@ class StreamLearner:
                 self.log(record)
                 found.add(samples, Labels(p_cur, p_pre, i))
                 alpha = cfg.next_alpha(alpha)
+                if spent.phases is not None and not found.kept:  # the start does not do the task
+                    learner.restart()
+                    p_pre, alpha, spent = None, cfg.alpha, spent._replace(phases=None)
                 if len(found.kept) >= (spent.phases or cfg.success_phases):
                     break
         except NumericalError as error:
