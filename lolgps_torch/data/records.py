@@ -69,6 +69,8 @@ class ConditionSummary:
     :param failure: why local learning stopped early on a numerical failure (None: it did
         not); the condition's D_g then holds the successes before it.
     :param repairs: S-step rounds run after the first because the policy missed a condition.
+    :param started_from_policy: local learning started from the global policy's expansion
+        (forward transfer, ``--transfer start``) and kept it.
     """
 
     condition: int
@@ -85,6 +87,7 @@ class ConditionSummary:
     failure: str | None = None
     rollouts: int = 0
     repairs: int = 0
+    started_from_policy: bool = False
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

@@ -148,13 +148,14 @@ class StreamConfig:
 
 class Outcome(NamedTuple):
     """What local learning (or rehearsal) at one condition produced: its successes, the
-    final controllers with the iteration count, the rollouts drawn, and a numerical failure
-    that ended it early (None: none)."""
+    final controllers with the iteration count, the rollouts drawn, a numerical failure
+    that ended it early (None: none), and whether it started from the policy's expansion."""
 
     found: Successes
     final: Labels
     rollouts: int
     failure: str | None
+    started: bool = False
 
 
 class Spent(NamedTuple):
@@ -240,6 +241,7 @@ class StreamLearner:
             failure=failure,
             rollouts=outcome.rollouts,
             repairs=repairs,
+            started_from_policy=outcome.started,
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
@@ -341,7 +343,8 @@ class StreamLearner:
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"
         rollouts = spent.rollouts + (iterations - spent.iterations) * cfg.local.samples
-        return Outcome(found, Labels(learner.p_cur, p_pre, iterations), rollouts, failure)
+        final = Labels(learner.p_cur, p_pre, iterations)
+        return Outcome(found, final, rollouts, failure, spent.phases is not None)
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own
