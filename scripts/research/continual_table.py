@@ -12,11 +12,12 @@ area 0 (points of success lost between the stage that trained it and the last).
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
 from lolgps_torch.cli import run
+from lolgps_torch.data.run_folder import RunFolder
+from lolgps_torch.evaluation.evaluate import read_evaluation
 
 
 def _mean(values: list[float | None]) -> float | None:
@@ -30,7 +31,8 @@ def _text(value: float | None, form: str) -> str:
 
 def row(path: Path) -> str:
     """The table row of the run at ``path``."""
-    summary = json.loads((path / "summary.json").read_text())
+    folder = RunFolder(path)
+    summary = folder.read_summary()
     conditions = summary["conditions"]
     reached = sum(bool(c.get("policy_success_end")) for c in conditions)
     rollouts = [int(c["rollouts"]) for c in conditions]
@@ -41,9 +43,8 @@ def row(path: Path) -> str:
         f"{sum(rollouts)}",
         f"{early} / {late} ({late / early:.2f})",
     ]
-    evaluation = path / "eval.json"
-    if evaluation.exists():
-        data: dict[str, Any] = json.loads(evaluation.read_text())
+    if folder.eval_path.exists():
+        data: dict[str, Any] = read_evaluation(path)
         metrics = data["metrics"]
         ft = [r["forward_transfer"] for r in metrics.get("forward_transfer") or []]
         last = data["stages"][-1]["groups"]
