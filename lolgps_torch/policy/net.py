@@ -38,9 +38,10 @@ class PolicyConfig:
         step took ~20x longer than with 1.
     :param feedback: the gain head, ``mu = a(h) + B(h) z`` (off: the plain MLP ``a(h)``).
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
-        scaled targets); the policy itself stays float64. float32 takes a third less time and
-        fits as well, but refitting Panda seed 1's stream with it kept 6/8 positions against
-        8/8 in float64 (docs/RESULTS.md section 12.1), so float64 stays the default.
+        scaled targets); the policy itself stays float64. float32 takes a third less loop
+        time and reached as many positions over 38 paired runs, but fewer on the published
+        Panda (59 against 63 of 72) with more repair rounds (docs/RESULTS.md sections 12.1
+        and 19), so float64 stays the default.
     """
 
     hidden_sizes: tuple[int, ...] = (42, 42, 42, 42)
