@@ -52,7 +52,7 @@ class PolicyConfig:
     pre_weight: float = 0.1
     num_threads: int | None = 1
     feedback: bool = True
-    adam_dtype: AdamDtype = "float64"
+    adam_dtype: AdamDtype = "float32"
 
     def __post_init__(self) -> None:
         check_fields(
