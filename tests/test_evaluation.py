@@ -45,7 +45,7 @@ from lolgps_torch.evaluation.metrics import (
 )
 from lolgps_torch.evaluation.plot import plot_fig4
 from lolgps_torch.evaluation.square import SquareConfig
-from lolgps_torch.evaluation.table import format_table
+from lolgps_torch.evaluation.table import format_table, markdown_table
 from lolgps_torch.evaluation.worker import Job, PolicyState, RolloutSetup, run_worker
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.task import PegTask, TaskConfig
@@ -439,3 +439,8 @@ def test_square_test_set_is_one_group_of_held_out_positions(tmp_path: Path) -> N
     assert len(evaluation["stages"][-1]["per_position"]["final_distance"][0]) == 4
     plot_fig4(evaluation, tmp_path / "fig.png")
     assert (tmp_path / "fig.png").stat().st_size > 0
+
+
+def test_markdown_table_has_a_rule_and_one_line_per_row() -> None:
+    table = markdown_table(("run", "policy"), [["a", "8/8"], ["b", "7/8"]])
+    assert table.splitlines() == ["| run | policy |", "|---|---|", "| a | 8/8 |", "| b | 7/8 |"]

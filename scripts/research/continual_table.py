@@ -18,6 +18,7 @@ from typing import Any
 from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.evaluation.evaluate import read_evaluation
+from lolgps_torch.evaluation.table import markdown_table
 
 
 def _mean(values: list[float | None]) -> float | None:
@@ -29,8 +30,8 @@ def _text(value: float | None, form: str) -> str:
     return "-" if value is None else format(value, form)
 
 
-def row(path: Path) -> str:
-    """The table row of the run at ``path``."""
+def row(path: Path) -> list[str]:
+    """The table's cells for the run at ``path``."""
     folder = RunFolder(path)
     summary = folder.read_summary()
     conditions = summary["conditions"]
@@ -58,7 +59,7 @@ def row(path: Path) -> str:
         ]
     else:
         cells += ["-"] * 4
-    return "| " + " | ".join(cells) + " |"
+    return cells
 
 
 def main() -> None:
@@ -67,13 +68,11 @@ def main() -> None:
     )
     parser.add_argument("runs", nargs="+", type=Path, help="finished run folders")
     args = parser.parse_args()
-    print(
-        "| run | policy | rollouts | conditions 0-3 / 4-7 | "
-        "FT 1-7 | FT 4-7 | areas 0 / 2 / 4 (%) | forgetting, area 0 (points) |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    for path in args.runs:
-        print(row(path))
+    header = (
+        "run", "policy", "rollouts", "conditions 0-3 / 4-7", "FT 1-7", "FT 4-7",
+        "areas 0 / 2 / 4 (%)", "forgetting, area 0 (points)",
+    )  # fmt: skip
+    print(markdown_table(header, (row(path) for path in args.runs)))
 
 
 if __name__ == "__main__":

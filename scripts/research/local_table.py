@@ -17,11 +17,12 @@ import statistics
 
 from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder
+from lolgps_torch.evaluation.table import markdown_table
 from lolgps_torch.lolgps.run import read_run
 
 
-def row(path: str) -> str:
-    """The Markdown row of one run."""
+def row(path: str) -> list[str]:
+    """The table's cells for one run."""
     folder = RunFolder(path)
     conditions = folder.read_summary()["conditions"]
     threshold = read_run(folder).task.world.success_threshold
@@ -35,13 +36,16 @@ def row(path: str) -> str:
             for key in times:
                 times[key] += float(record[key])
     sample = times["time_sample"]
-    return (
-        f"| {path} | {sum(bool(c['policy_success_end']) for c in conditions)}/{len(conditions)} "
-        f"| {sum(d < threshold for d in local)}/{len(local)} | {local[worst]:.4f} ({worst}) "
-        f"| {statistics.fmean(found) if found else float('nan'):.1f} "
-        f"| {sum(int(c['iterations']) for c in conditions)} "
-        f"| {times['time_fit'] / sample:.2f} | {times['time_cstep'] / sample:.2f} |"
-    )
+    return [
+        path,
+        f"{sum(bool(c['policy_success_end']) for c in conditions)}/{len(conditions)}",
+        f"{sum(d < threshold for d in local)}/{len(local)}",
+        f"{local[worst]:.4f} ({worst})",
+        f"{statistics.fmean(found) if found else float('nan'):.1f}",
+        f"{sum(int(c['iterations']) for c in conditions)}",
+        f"{times['time_fit'] / sample:.2f}",
+        f"{times['time_cstep'] / sample:.2f}",
+    ]
 
 
 def main() -> None:
@@ -50,14 +54,12 @@ def main() -> None:
     )
     parser.add_argument("runs", nargs="+")
     args = parser.parse_args()
-    print(
-        "| run | policy at the positions (end) | local controllers within threshold "
-        "| worst local (m, condition) | first success (mean iteration) | iterations "
-        "| fit / sampling | C-step / sampling |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    for path in args.runs:
-        print(row(path))
+    header = (
+        "run", "policy at the positions (end)", "local controllers within threshold",
+        "worst local (m, condition)", "first success (mean iteration)", "iterations",
+        "fit / sampling", "C-step / sampling",
+    )  # fmt: skip
+    print(markdown_table(header, (row(path) for path in args.runs)))
 
 
 if __name__ == "__main__":
