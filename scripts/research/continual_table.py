@@ -5,8 +5,9 @@
 Columns, from each run's summary.json and, if ``scripts/evaluate.py --run RUN --scratch auto``
 has been run, its eval.json: the global policy at the training positions at the end; the
 rollouts in all, at conditions 0-3 and at 4-7 and their ratio; Continual World's forward
-transfer, mean over conditions 1-7 and over 4-7; success on test areas 0, 2 and 4 after the last stage; the forgetting of
-area 0 (points of success lost between the stage that trained it and the last).
+transfer, mean over conditions 1-7 and over 4-7; success on test areas 0, 2 and 4 after the
+last stage (on the square stream's test set, ``evaluate.py --square``, its one group); the
+forgetting of area 0 (points of success lost between the stage that trained it and the last).
 """
 
 from __future__ import annotations
@@ -50,7 +51,8 @@ def row(path: Path) -> list[str]:
         ft = [r["forward_transfer"] for r in metrics.get("forward_transfer") or []]
         last = data["stages"][-1]["groups"]
         areas = [last[k]["success_rate"]["mean"] for k in (0, 2, 4) if k < len(last)]
-        lost = metrics["forgetting"]["success_rate"]["per_area"][0]
+        forgetting = metrics["forgetting"]  # None for other test sets than the areas
+        lost = forgetting["success_rate"]["per_area"][0] if forgetting else None
         cells += [
             _text(_mean(ft[1:]), ".2f"),
             _text(_mean(ft[4:]), ".2f"),
