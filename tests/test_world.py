@@ -13,7 +13,7 @@ import torch
 
 from lolgps_torch.cost.l12 import CostConfig, PegCost, to_quadratic
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import ArmSpec, load_arm
+from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import (
     PlacementConfig,
@@ -63,7 +63,7 @@ def test_follow_may_pass_within_the_placement_margin_of_a_joint_limit(task: PegT
     range: with a joint's limit set just beyond where the path ends, the floor is reached."""
     kin, arm = task.kinematics, task.arm
     floor = task.targets([(0.02, -0.02)])
-    q_end = _follow_to(kin, arm, task.q0, floor)
+    q_end = _gauss_newton(kin, task.q0, floor)
     moved = int((q_end - task.q0).abs().argmax())
     span = arm.upper[moved] - arm.lower[moved]
     if float(q_end[moved]) > float(task.q0[moved]):  # the limit 1 % of the range beyond the end
@@ -75,10 +75,9 @@ def test_follow_may_pass_within_the_placement_margin_of_a_joint_limit(task: PegT
     assert float(error[0]) < 1e-6
 
 
-def _follow_to(
-    kin: PegKinematics, arm: ArmSpec, q0: torch.Tensor, targets: torch.Tensor
-) -> torch.Tensor:
-    """The pose at which :func:`follow`'s damped least squares ends (its last step, repeated)."""
+def _gauss_newton(kin: PegKinematics, q0: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """A pose reaching the point targets by minimum-norm Gauss-Newton steps from ``q0`` (so on
+    q0's branch): where a way from q0 to the targets ends."""
     q = q0.clone()
     for _ in range(200):
         points, jac = kin.points_and_jacobian(q)
@@ -120,7 +119,7 @@ def test_generic_rank_is_five_for_a_seven_joint_arm(task: PegTask) -> None:
 
 
 def test_a_stream_reachable_only_through_a_singular_pose_is_one_error(task: PegTask) -> None:
-    # the start pose given, so that no candidate hole solves its own (as fast, the same refusal)
+    # with the start pose given, no candidate hole solves its own: the same refusal, sooner
     q0 = tuple(task.q0.tolist())
     config = PlacementConfig(positions=((0.02, -0.02),), dexterity=0.9, q0=q0)
     with pytest.raises(LolgpsError, match=r"not all from the start pose without passing a singul"):

@@ -18,7 +18,6 @@ from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import PlacementConfig, place_task
-from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.task import TaskConfig
 
 
@@ -29,7 +28,6 @@ def main() -> None:
     parser.add_argument("--urdf", nargs="+", required=True)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     args = parser.parse_args()
-    depth = WorldConfig().depth
     for urdf in args.urdf:
         task = TaskConfig(urdf=urdf)
         with warnings.catch_warnings():
@@ -40,7 +38,7 @@ def main() -> None:
             conditions, _ = default_training_stream(AreaConfig(), seed)
             try:
                 config = PlacementConfig(positions=tuple(conditions))
-                geometry = place_task(arm, kinematics, config, depth)
+                geometry = place_task(arm, kinematics, config, task.world.depth)
                 mouth = " ".join(f"{v:.4f}" for v in geometry.nominal_mouth)
                 q0 = " ".join(f"{v:.3f}" for v in geometry.q0)
                 print(f"{urdf} seed {seed}: mouth {mouth} q0 {q0}", flush=True)
