@@ -9,6 +9,7 @@ the joint vector ``y = [x; u]``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -54,6 +55,11 @@ class LinearDynamics(NamedTuple):
     cov: Tensor
     x0_mean: Tensor
     x0_cov: Tensor
+
+
+# A model's step linearised at a batch: (x: [B, dX], u: [B, dU]) -> (F: [B, dX, dX + dU],
+# f0: [B, dX]) with f(x, u) ~ F [x; u] + f0.
+StepLinearizer = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 
 
 class QuadraticCost(NamedTuple):

@@ -12,10 +12,10 @@ from typing import Literal, get_args
 import torch
 from torch import Tensor
 
-from lolgps_torch.dynamics.model_prior import Linearizer, ModelPrior
+from lolgps_torch.dynamics.model_prior import ModelPrior
 from lolgps_torch.dynamics.prior import GMMPrior, NIWPrior
 from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
-from lolgps_torch.types import LinearDynamics
+from lolgps_torch.types import LinearDynamics, StepLinearizer
 
 
 def gaussian_regression(
@@ -145,7 +145,7 @@ class DynamicsFitter:
     """
 
     def __init__(
-        self, config: DynamicsConfig | None = None, model: Linearizer | None = None
+        self, config: DynamicsConfig | None = None, model: StepLinearizer | None = None
     ) -> None:
         self.config = config if config is not None else DynamicsConfig()
         c = self.config

@@ -7,16 +7,12 @@ Layout as in :mod:`lolgps_torch.dynamics.prior`: samples ``X: [N, T, dA]`` (``X 
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
 from torch import Tensor
 
 from lolgps_torch.dynamics.prior import NIWPrior
 from lolgps_torch.errors import LolgpsError
-
-# (x: [B, dX], u: [B, dU]) -> (F: [B, dX, dX + dU], f0: [B, dX]) with f(x, u) ~ F [x; u] + f0
-Linearizer = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
+from lolgps_torch.types import StepLinearizer
 
 
 class ModelPrior:
@@ -49,7 +45,7 @@ class ModelPrior:
 
     def __init__(
         self,
-        linearize: Linearizer,
+        linearize: StepLinearizer,
         strength: float = 1.0,
         tolerance: float = 0.1,
         residual_reg: float = 1e-6,

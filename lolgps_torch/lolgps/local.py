@@ -11,8 +11,9 @@ from the predicted against the actual improvement of the expected cost.
 
 A step is rejected when its samples cost more on average than those of the last accepted
 iteration, by more than ``reject_z`` standard errors of the difference of the two means, or
-when one of them costs more than the first iteration's samples did on average (a rollout worse
-than the hold of the start pose has diverged): p_cur returns to the controller that drew the
+when one of them costs more than holding the start pose does (a rollout worse than that has
+diverged; the hold's cost is the first iteration's mean, or the model's prediction when the
+first controller is planned on the model): p_cur returns to the controller that drew the
 accepted samples and the C-step is taken again from the accepted fit with the step size at
 most halved (a line search on epsilon). A step taken at the smallest multiplier is accepted: its
 samples re-measure the cost.
@@ -43,6 +44,7 @@ from lolgps_torch.trajopt import (
     c_step,
     kl_bound,
     laplace_cost,
+    plan_on_model,
 )
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost, Trajectories
 
@@ -63,6 +65,9 @@ class LocalConfig:
         accepted iteration's by more than ``reject_z * sqrt(s_new^2 / N + s_acc^2 / N)`` (s the
         sample standard deviations of the total costs): only an increase that the N samples
         can tell from noise undoes a step (0: any increase does).
+    :param model_plans: with the model prior (``dynamics.prior == "model"``), C-steps taken on
+        the model before the first sample (:func:`planned_controller`; 0: the first iteration
+        samples the hold controller, as with the GMM prior).
     :param cstep: the C-step's settings. :param dynamics: the dynamics fit's settings.
     """
 
@@ -71,6 +76,7 @@ class LocalConfig:
     init_omega: float = 2.0
     noise_smoothing: float = 2.0
     reject_z: float = 2.0
+    model_plans: int = 10
     cstep: CStepConfig = field(default_factory=CStepConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
 
@@ -83,6 +89,7 @@ class LocalConfig:
                 "init_omega": 0.0 <= self.init_omega < math.inf,
                 "noise_smoothing": 0.0 <= self.noise_smoothing < math.inf,
                 "reject_z": 0.0 <= self.reject_z < math.inf,
+                "model_plans": self.model_plans >= 0,
             },
         )
 
@@ -135,6 +142,34 @@ def initial_controller(task: PegTask, config: LocalConfig) -> LinearGaussian:
     )
 
 
+def planned_controller(
+    task: PegTask, targets: Tensor, hold: LinearGaussian, config: LocalConfig
+) -> tuple[LinearGaussian, float]:
+    """The hold controller's mean replanned on the arm's model (:func:`.trajopt.plan_on_model`,
+    ``config.model_plans`` C-steps of the largest step size), and the hold's total cost.
+
+    Under the model the hold rests at the start state ``x_0 = [q0; 0; P(q0) - p*; 0]``: the
+    gravity compensation holds q0 exactly and the PD terms are zero, so the planning starts from
+    ``xbar_t = x_0``, ``ubar_t = 0`` and the hold's cost is ``sum_t l(x_0, 0)``."""
+    lay, T = task.layout, task.T
+    x0 = torch.zeros(lay.dX, dtype=torch.float64, device=task.device)
+    x0[lay.q] = task.q0
+    x0[lay.points] = (task.kinematics.points(task.q0) - targets).flatten()
+    x = x0.expand(T, lay.dX)
+    u = hold.mean_action(x)
+    rest = float(task.cost.evaluate(x[None], u[None], targets).sum())
+
+    def expand(x: Tensor, u: Tensor) -> QuadraticCost:
+        return to_quadratic(task.cost.expand(x[None], u[None], targets), x[None], u[None])
+
+    epsilon = kl_bound(config.cstep.step_mult_max, T, config.cstep)
+    planned = plan_on_model(
+        task.model.linearize, expand, hold, x, u, config.model_plans, epsilon, config.cstep,
+        config.dynamics.initial_state_var,
+    )  # fmt: skip
+    return planned, rest
+
+
 def mean_and_se2(totals: Tensor) -> tuple[float, float]:
     """The mean of the samples' total costs ``[N]`` and its squared standard error
     ``s^2 / N`` (s^2 the unbiased sample variance)."""
@@ -147,7 +182,7 @@ def step_rejected(totals: Tensor, last: Accepted, start_cost: float, z: float) -
         mean(totals) - J_acc > z sqrt(s^2 / N + s_acc^2 / N)   or   max(totals) > J_start
 
     with J_acc, s_acc^2 / N the accepted samples' mean and squared standard error and J_start
-    the first iteration's mean (the hold of the start pose): an increase the samples' noise
+    the cost of holding the start pose: an increase the samples' noise
     cannot explain, or one rollout worse than holding still, which only a diverging
     controller gives."""
     cost, se2 = mean_and_se2(totals)
@@ -162,13 +197,15 @@ class LocalLearner:
     ) -> None:
         self.task, self.offset, self.config = task, offset, config
         self.generator = torch.Generator().manual_seed(seed)
+        self.targets = task.targets([offset])[0]
         self.p_cur = initial_controller(task, config)
-        model = task.model.linearize if config.dynamics.prior == "model" else None
-        self.fitter = DynamicsFitter(config.dynamics, model)
+        self.start_cost = math.inf  # the hold's mean total cost, measured by the first samples
+        model = config.dynamics.prior == "model"
+        self.fitter = DynamicsFitter(config.dynamics, task.model.linearize if model else None)
+        if model and config.model_plans > 0:
+            self.p_cur, self.start_cost = planned_controller(task, self.targets, self.p_cur, config)
         self.step_mult = config.cstep.step_mult_init
         self.accepted: Accepted | None = None
-        self.start_cost = math.inf  # the first iteration's mean total cost
-        self.targets = task.targets([offset])[0]
 
     def sample(self, p_act: LinearGaussian) -> Trajectories:
         """N rollouts of ``p_act`` at this condition."""
@@ -208,7 +245,7 @@ class LocalLearner:
                 )
                 self.p_cur = last.p_cur
                 return last.fit
-        else:
+        elif math.isinf(self.start_cost):  # the first samples are the hold's
             self.start_cost = float(totals.mean())
         cost, cost_se2 = mean_and_se2(totals)
         self.accepted = Accepted(fit, expected, self.p_cur, cost, cost_se2, samples.x)
