@@ -6,7 +6,11 @@
 - linearize_mean: the arm's control step linearised at the T-1 per-step sample means (what
                   the model prior evaluates);
 - linearize_all:  the same at all N x (T-1) samples;
-- fit_model:      DynamicsFitter.update with prior="model" (GMM, linearisation, mixing).
+- fit_model:      DynamicsFitter.update with prior="model" (GMM, linearisation, mixing);
+- plan:           the first controller planned on the model (``LocalConfig.model_plans``
+                  C-steps, :func:`lolgps_torch.lolgps.local.planned_controller`), once per
+                  condition;
+- sample:         one iteration's 5 rollouts in the simulator (one process).
 Medians over the repeats, as ratios to fit_gmm measured in the same run.
 """
 
@@ -20,7 +24,12 @@ from dataclasses import replace
 
 from lolgps_torch.cli import run
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.lolgps.local import (
+    LocalConfig,
+    LocalLearner,
+    initial_controller,
+    planned_controller,
+)
 from lolgps_torch.task import PegTask, TaskConfig
 
 
@@ -42,7 +51,9 @@ def main() -> None:
     args = parser.parse_args()
     task = PegTask(TaskConfig(urdf=args.urdf), n_worlds=5)
     try:
-        learner = LocalLearner(task, (0.0, 0.0), LocalConfig(), seed=0)
+        config = LocalConfig()
+        learner = LocalLearner(task, (0.0, 0.0), config, seed=0)
+        hold = initial_controller(task, config)
         samples = learner.sample(learner.p_cur)
         x, u = samples.x, samples.u  # [5, T, dX], [5, T, dU]
         gmm = DynamicsFitter(DynamicsConfig())
@@ -62,6 +73,11 @@ def main() -> None:
                 args.repeats,
             ),
             "fit_model": median_time(lambda: model.update(x, u), args.repeats),
+            "plan": median_time(
+                lambda: planned_controller(task, learner.targets, hold, config),
+                args.repeats,
+            ),
+            "sample": median_time(lambda: learner.sample(learner.p_cur), args.repeats),
         }
     finally:
         task.close()
