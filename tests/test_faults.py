@@ -52,7 +52,7 @@ def test_a_numerical_failure_fails_its_condition_and_the_stream_goes_on(
 
     def failing(*args: Any) -> Any:
         condition, iteration, _ = args[4]  # where: (condition, iteration, alpha)
-        if (condition, iteration) == (1, 1):
+        if (condition, iteration) == (1, 0):
             raise NumericalError("Quu is not positive definite even at eta = 1e+10")
         return real(*args)
 
@@ -62,15 +62,15 @@ def test_a_numerical_failure_fails_its_condition_and_the_stream_goes_on(
     summary = learner.run([(0.0, 0.0), (0.01, 0.0), (0.0, 0.01)], lambda entry: None)
     assert [e.failure for e in summary] == [
         None,
-        "iteration 1: Quu is not positive definite even at eta = 1e+10",
+        "iteration 0: Quu is not positive definite even at eta = 1e+10",
         None,
     ]
     failed = summary[1]
-    assert failed.iterations == 2 and not failed.local_success
+    assert failed.iterations == 1 and not failed.local_success
     # the stream went on: the next condition was learnt and every condition is in the replay
     assert summary[2].iterations >= 1
     assert ReplayBuffer(folder.replay_path).conditions() == [0, 1, 2]
-    assert folder.read_entry(1)["failure"].startswith("iteration 1: Quu")
+    assert folder.read_entry(1)["failure"].startswith("iteration 0: Quu")
 
 
 def test_a_blown_up_simulation_is_a_numerical_error(task: PegTask) -> None:

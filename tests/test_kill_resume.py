@@ -90,7 +90,7 @@ def _group_bytes(path: Path, group: str) -> dict[str, bytes]:
 def test_killed_three_times_the_resumed_run_ends_as_the_uninterrupted_one(
     reference: Path, tmp_path: Path
 ) -> None:
-    """One run killed (a) right after its second iteration record, before any condition was
+    """One run killed (a) right after its first iteration record, before any condition was
     complete; (b) during the last condition's S-step, after its last iteration record and
     before its "distilled" record; (c) while the replay is being appended, as soon as
     ``replay.h5.partial`` appears (the append takes 0.1-0.3 s; polled every ms). After each
@@ -100,7 +100,7 @@ def test_killed_three_times_the_resumed_run_ends_as_the_uninterrupted_one(
     command = _command(tmp_path, out)
     replay = out / "replay.h5"
 
-    _kill_at(command, out, _iteration_logged(0, 1), poll=0.005)  # (a)
+    _kill_at(command, out, _iteration_logged(0, 0), poll=0.005)  # (a)
     assert not replay.exists() and not (out / "checkpoints").exists()
 
     expected = _records(reference)

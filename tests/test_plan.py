@@ -147,8 +147,9 @@ def test_the_model_prior_plans_a_first_controller_that_inserts_the_peg() -> None
     hold's exploring samples cost, and far more than the planned samples'."""
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=5)
     try:
-        base = LocalConfig()
-        model = replace(base, dynamics=replace(base.dynamics, prior="model"))
+        model = LocalConfig()
+        base = replace(model, dynamics=replace(model.dynamics, prior="gmm"))
+        assert model.dynamics.prior == "model"  # the default
         hold = LocalLearner(task, (0.02, -0.01), base, seed=1)
         planned = LocalLearner(task, (0.02, -0.01), model, seed=1)
         unplanned = LocalLearner(task, (0.02, -0.01), replace(model, model_plans=0), seed=1)

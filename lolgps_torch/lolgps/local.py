@@ -68,7 +68,9 @@ class LocalConfig:
     :param model_plans: with the model prior (``dynamics.prior == "model"``), C-steps taken on
         the model before the first sample (:func:`planned_controller`; 0: the first iteration
         samples the hold controller, as with the GMM prior).
-    :param cstep: the C-step's settings. :param dynamics: the dynamics fit's settings.
+    :param cstep: the C-step's settings.
+    :param dynamics: the dynamics fit's settings; its prior is the arm's model by default (a
+        fitter alone has no model, so :class:`DynamicsConfig`'s own default is the GMM's).
     """
 
     samples: int = 5
@@ -78,7 +80,7 @@ class LocalConfig:
     reject_z: float = 2.0
     model_plans: int = 10
     cstep: CStepConfig = field(default_factory=CStepConfig)
-    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    dynamics: DynamicsConfig = field(default_factory=lambda: DynamicsConfig(prior="model"))
 
     def __post_init__(self) -> None:
         check_fields(

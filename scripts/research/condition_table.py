@@ -17,10 +17,13 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import get_args
 
 from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder, read_json
+from lolgps_torch.dynamics.fit import PriorSource
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.lolgps.local import LocalConfig
 from lolgps_torch.trajopt.config import CStepConfig
 
 TRAIN_CONDITION = Path(__file__).resolve().parents[1] / "train_condition.py"
@@ -54,7 +57,10 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--min-success", type=int, default=3)
     parser.add_argument(
-        "--dynamics-prior", choices=("gmm", "model"), default="gmm", help="passed on"
+        "--dynamics-prior",
+        choices=get_args(PriorSource),
+        default=LocalConfig().dynamics.prior,
+        help="passed on (default %(default)s)",
     )
     steps = CStepConfig()
     parser.add_argument(

@@ -17,11 +17,13 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import replace
+from typing import get_args
 
 import torch
 from torch import Tensor
 
 from lolgps_torch.cli import add_task_arguments, run, task_config
+from lolgps_torch.dynamics.fit import PriorSource
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.task import PegTask
 
@@ -42,7 +44,9 @@ def main() -> None:
     parser.add_argument("--hole", type=float, nargs=2, default=(0.0, 0.0), metavar=("DX", "DY"))
     parser.add_argument("--iterations", type=int, default=6)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--dynamics-prior", choices=("gmm", "model"), default="gmm")
+    parser.add_argument(
+        "--dynamics-prior", choices=get_args(PriorSource), default=LocalConfig().dynamics.prior
+    )
     parser.add_argument("--every", type=int, default=5, help="print every k-th step")
     args = parser.parse_args()
     torch.manual_seed(args.seed)
