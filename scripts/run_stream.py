@@ -60,6 +60,7 @@ STREAM_FLAGS = ConfigFlags(
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),
         "dynamics-prior": ("local.dynamics.prior",),
+        "model-plans": ("local.model_plans",),
     },
     skip=("use_pre",),  # set by --method
 )

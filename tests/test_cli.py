@@ -187,7 +187,7 @@ NUMERIC_FLAGS = [
     "--alpha", "--alpha-step", "--success-phases", "--augment", "--augment-scale",
     "--max-iterations", "--samples", "--distill-steps", "--pre-weight", "--seed", "--count",
     "--friction", "--action-weight", "--descent-height", "--descent-steps", "--peg-length",
-    "--peg-radius",
+    "--peg-radius", "--model-plans",
 ]  # fmt: skip
 VALUES = ["nan", "inf", "-inf", "-1", "0", "1e308", "2", "0.5", "x", "", "1e-300"]
 
