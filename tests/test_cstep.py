@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.controllers import forward_pass, kl_divergence
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.trajopt import (
     CStepConfig,
     adapt_step_mult,
@@ -16,6 +16,7 @@ from lolgps_torch.trajopt import (
     c_step,
     kl_bound,
     laplace_cost,
+    lqr,
 )
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost
 
@@ -213,6 +214,34 @@ def test_impossible_quu_raises() -> None:
         backward_pass(cost, dynamics, p_bar, torch.tensor([1.0], dtype=DT))
     with pytest.raises(LolgpsError, match="not positive definite"):
         c_step(cost, dynamics, p_bar, epsilon=10.0)
+
+
+def test_candidates_that_rounding_breaks_leave_the_search(monkeypatch: pytest.MonkeyPatch) -> None:
+    """When Quu fails at the largest etas alone (rounding, as on fitted contact dynamics),
+    those candidates leave the dual search instead of ending it: a bound the solvable etas
+    reach is met as without the failure, and a bound below their KL keeps the solvable
+    controller closest to p_bar, with a warning."""
+    cost, dynamics, p_bar = random_problem(seed=8)
+    reference = c_step(cost, dynamics, p_bar, epsilon=5.0)
+    real = lqr.solve
+
+    def broken_above(limit: float):  # type: ignore[no-untyped-def]
+        def solve(problem: lqr.AugmentedProblem, eta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+            gain, factor, ok = real(problem, eta)
+            return gain, factor, ok & (eta < limit)
+
+        return solve
+
+    monkeypatch.setattr(lqr, "solve", broken_above(1e6))
+    result = c_step(cost, dynamics, p_bar, epsilon=5.0)
+    assert float(result.eta) < 1e6
+    torch.testing.assert_close(result.policy.K, reference.policy.K, rtol=1e-3, atol=1e-6)
+    with pytest.warns(UserWarning, match="even at the largest eta"):
+        tight = c_step(cost, dynamics, p_bar, epsilon=1e-9)
+    assert float(tight.eta) < 1e6 and float(tight.kl.sum()) > 1e-9
+    monkeypatch.setattr(lqr, "solve", broken_above(0.0))
+    with pytest.raises(NumericalError, match="not positive definite"):
+        c_step(cost, dynamics, p_bar, epsilon=5.0)
 
 
 def test_step_mult_adaptation() -> None:

@@ -19,10 +19,12 @@ class CStepConfig:
     :param step_change_min: lower clip of one adaptation's factor on the multiplier.
     :param step_change_max: upper clip of one adaptation's factor on the multiplier.
     :param eta_min: smallest dual variable searched (the constraint is not binding below it).
-    :param eta_max: largest dual variable; a Quu not positive definite past it is an error.
+    :param eta_max: largest dual variable; a candidate whose Quu is not positive definite
+        even there leaves the dual search, and if every candidate does, it is an error.
         1e10, not the original's 1e16: with the scaled surrogate C + eta (-log p_bar), V's
         eta-sized terms nearly cancel, and past ~1e12 rounding amplified by unstable fitted
-        dynamics makes Quu indefinite (seen on peg-insertion fits); by 1e10 p = p_bar anyway.
+        dynamics makes Quu indefinite (seen on peg-insertion fits, on one also at 1e10 while
+        smaller etas solved); by 1e10 p = p_bar anyway.
     :param kl_tolerance: accepted relative error ``|KL - epsilon| <= kl_tolerance * epsilon``.
     :param num_candidates: eta candidates evaluated together in one batched pass.
     :param max_passes: most batched passes of the dual search.

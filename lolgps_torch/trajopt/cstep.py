@@ -32,7 +32,13 @@ from lolgps_torch.controllers import (
     trajectory_kl,
 )
 from lolgps_torch.trajopt.config import CStepConfig
-from lolgps_torch.trajopt.lqr import AugmentedProblem, augment, solve_with_retry, to_policy
+from lolgps_torch.trajopt.lqr import (
+    AugmentedProblem,
+    augment,
+    require_solved,
+    solve_with_retry,
+    to_policy,
+)
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost
 
 
@@ -71,11 +77,14 @@ def _evaluate(
     eta: Tensor,
     config: CStepConfig,
 ) -> _Candidates:
-    gain, factor, eta = solve_with_retry(
+    gain, factor, eta, solved = solve_with_retry(
         problem, eta, config.pd_delta, config.eta_max, config.pd_retry_width
     )
-    policy = to_policy(gain, factor, eta)
-    return _Candidates(eta, trajectory_kl(policy, p_bar, dynamics), policy)
+    if not bool(solved.any()):
+        require_solved(solved, config.eta_max)
+    keep = torch.nonzero(solved).squeeze(-1)  # rounding can break the largest etas alone
+    policy = to_policy(gain[keep], factor[keep], eta[keep])
+    return _Candidates(eta[keep], trajectory_kl(policy, p_bar, dynamics), policy)
 
 
 class _Choice(NamedTuple):
@@ -234,7 +243,7 @@ def c_step(
     :param p_bar: the trust-region controller (p_pre, or the previous p_cur).
     :param epsilon: the KL bound on the whole trajectory (``kl_step * step_mult * T``).
     :param config: search settings; defaults to ``CStepConfig()``.
-    :raises LolgpsError: when Quu stays indefinite up to ``eta_max``, or KL > epsilon there.
+    :raises NumericalError: when Quu stays indefinite up to ``eta_max`` for every candidate.
     """
     config = CStepConfig() if config is None else config
     tensors = (*cost, *dynamics, *p_bar)
@@ -244,13 +253,14 @@ def c_step(
         )
     eta = found.eta[index]
     if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        gain, factor, eta_used = solve_with_retry(
+        gain, factor, eta_used, solved = solve_with_retry(
             augment(cost, dynamics, p_bar),
             eta[None],
             config.pd_delta,
             config.eta_max,
             config.pd_retry_width,
         )
+        require_solved(solved, config.eta_max)
         policy = LinearGaussian(*(part[0] for part in to_policy(gain, factor, eta_used)))
         eta = eta_used[0]
     else:

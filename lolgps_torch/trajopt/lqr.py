@@ -123,16 +123,18 @@ def solve_with_retry(
     pd_delta: float = CStepConfig.pd_delta,
     eta_max: float = CStepConfig.eta_max,
     retry_width: int = CStepConfig.pd_retry_width,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`solve`, raising each failed candidate's eta to ``eta + pd_delta 2^j`` with the
     smallest j that makes every Quu positive definite; ``retry_width`` values of j are tried
-    in one batch per round.
+    in one batch per round, up to ``eta_max``.
 
-    :return: gains ``[E, T, dU, dX+1]``, Cholesky factors ``[E, T, dU, dU]``, the etas used ``[E]``.
-    :raises LolgpsError: when a candidate is still not positive definite at ``eta_max``.
+    :return: gains ``[E, T, dU, dX+1]``, Cholesky factors ``[E, T, dU, dU]``, the etas used
+        ``[E]`` and ``solved [E]``: False where Quu is still not positive definite at
+        ``eta_max`` (those rows' gains and factors are not usable; see :func:`require_solved`).
     """
     gain, factor, ok = solve(problem, eta)
     eta = eta.clone()
+    solved = torch.ones_like(ok)
     failed = torch.nonzero(~ok).squeeze(-1)
     base = eta[failed]
     delta = torch.full_like(base, pd_delta)
@@ -142,18 +144,25 @@ def solve_with_retry(
         trial_gain, trial_factor, trial_ok = solve(problem, trial.flatten())
         trial_ok = trial_ok.view(trial.shape)
         found = trial_ok.any(1)
-        if bool((~found & (trial[:, -1] >= eta_max)).any()):
-            raise NumericalError(
-                f"Quu is not positive definite even at eta = {eta_max:g}: the cost is not "
-                "convex enough in u for this p_bar (check the action weights and p_bar.cov)"
-            )
         first = torch.argmax(trial_ok.to(torch.int8), dim=1)  # first PD trial of each row
         pick = (torch.arange(len(failed), device=eta.device) * retry_width + first)[found]
         gain = gain.index_copy(0, failed[found], trial_gain[pick])
         factor = factor.index_copy(0, failed[found], trial_factor[pick])
         eta = eta.index_copy(0, failed[found], trial.flatten()[pick])
-        failed, base, delta = failed[~found], base[~found], delta[~found] * 2.0**retry_width
-    return gain, factor, eta
+        given_up = ~found & (trial[:, -1] >= eta_max)
+        solved[failed[given_up]] = False
+        keep = ~found & ~given_up
+        failed, base, delta = failed[keep], base[keep], delta[keep] * 2.0**retry_width
+    return gain, factor, eta, solved
+
+
+def require_solved(solved: Tensor, eta_max: float) -> None:
+    """Raise :class:`NumericalError` unless every candidate of ``solved [E]`` was solved."""
+    if not bool(solved.all()):
+        raise NumericalError(
+            f"Quu is not positive definite even at eta = {eta_max:g}: the cost is not "
+            "convex enough in u for this p_bar (check the action weights and p_bar.cov)"
+        )
 
 
 def to_policy(gain: Tensor, factor: Tensor, eta: Tensor) -> LinearGaussian:
@@ -182,5 +191,8 @@ def backward_pass(
     :raises LolgpsError: when Quu is not positive definite even at ``eta_max``.
     """
     problem = augment(cost, dynamics, p_bar)
-    gain, factor, eta = solve_with_retry(problem, eta.detach(), pd_delta, eta_max, retry_width)
+    gain, factor, eta, solved = solve_with_retry(
+        problem, eta.detach(), pd_delta, eta_max, retry_width
+    )
+    require_solved(solved, eta_max)
     return BackwardPassResult(policy=to_policy(gain, factor, eta), eta=eta)
