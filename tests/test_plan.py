@@ -1,9 +1,11 @@
 """The C-step iterated on a model before any sample (docs/ALGORITHM.md section 4.2): against
 the Riccati recursion on a linear system, its trust region, convergence on a nonlinear system
-by the system's own rollout, and the model-planned first controller of the peg task."""
+by the system's own rollout, and the model-planned first controller of the peg task on the KUKA
+and on published descriptions."""
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -13,10 +15,12 @@ from torch import Tensor
 
 from lolgps_torch.controllers import trajectory_kl
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.trajopt import CStepConfig, plan_on_model
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost, StepLinearizer
 from tests.test_cstep import random_problem, riccati
+from tests.test_published import PUBLISHED
 
 DT = torch.float64
 
@@ -164,3 +168,20 @@ def test_the_model_prior_plans_a_first_controller_that_inserts_the_peg() -> None
     assert int(first.success.sum()) >= 3
     assert 0.5 * hold.start_cost < planned.start_cost < hold.start_cost
     assert float(first.cost.sum(1).max()) < 0.1 * planned.start_cost
+
+
+@pytest.mark.parametrize("name", ["airo-ur3e", "rtb-rx200", "rtb-kr120"])
+def test_the_planned_first_controller_inserts_the_peg_on_published_arms(name: str) -> None:
+    """Descriptions as published (a UR3e, a 5-DoF Trossen arm, a ROS-Industrial KUKA whose
+    efforts are derived): the first samples of the default learner, planned on each arm's
+    model, already insert the peg at a hole off the nominal one."""
+    urdf, _, ee_link = PUBLISHED[name]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        task = PegTask(TaskConfig(urdf=str(urdf), ee_link=ee_link), n_worlds=5)
+    try:
+        learner = LocalLearner(task, (0.015, -0.01), LocalConfig(), seed=4)
+        samples, _, _ = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
+    finally:
+        task.close()
+    assert int(samples.success.sum()) >= 3
