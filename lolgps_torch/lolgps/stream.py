@@ -2,7 +2,7 @@
 
     pi <- fresh net
     for each condition m as it arrives:
-        p_cur <- hold controller; p_pre <- none; D_g(m) <- {}
+        p_cur <- hold controller, planned on the arm's model; p_pre <- none; D_g(m) <- {}
         if transfer is on, pi is trained and its noiseless rollout at m succeeds:
             D_g(m) <- successes of a few iterations of pi's own rollouts, labelled by pi
         else repeat:
@@ -75,7 +75,7 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
-    :param transfer: always learn a new condition from the hold controller (none, the paper),
+    :param transfer: always learn a new condition locally (none, the paper),
         or rehearse the policy instead where its noiseless rollout already succeeds (policy:
         fewer rollouts, but lower success on the Panda's test areas, docs/RESULTS.md
         sections 9.3 and 18).
@@ -198,7 +198,7 @@ class StreamLearner:
         learner = LocalLearner(self.task, offset, cfg.local, seed=seed)
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
         outcome, probe = self.transfer(learner, linearize, index)
-        if outcome is None:  # learn from the hold controller, after the transfer's iterations
+        if outcome is None:  # learn locally, after the transfer's iterations
             outcome = self.learn_locally(learner, linearize, index, probe)
         failure, final = outcome.failure, outcome.final
         labels, local = self.teacher(outcome, offset)  # D_g is labelled here
