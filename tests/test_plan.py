@@ -14,6 +14,8 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.controllers import trajectory_kl
+from lolgps_torch.errors import NumericalError
+from lolgps_torch.lolgps import local
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.task import PegTask, TaskConfig
@@ -185,3 +187,23 @@ def test_the_planned_first_controller_inserts_the_peg_on_published_arms(name: st
     finally:
         task.close()
     assert int(samples.success.sum()) >= 3
+
+
+def test_a_plan_that_fails_numerically_starts_from_the_hold_with_a_warning(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The plan is a better start, not a requirement: a numerical failure while planning is
+    one warning, and the condition is learnt from the hold, whose cost its samples measure."""
+
+    def failing(*args: object) -> LinearGaussian:
+        raise NumericalError("Quu is not positive definite even at eta = 1e+10")
+
+    monkeypatch.setattr(local, "plan_on_model", failing)
+    task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=5)
+    try:
+        with pytest.warns(UserWarning, match="could not be planned.*starting from the hold"):
+            learner = LocalLearner(task, (0.0, 0.0), LocalConfig(), seed=0)
+        hold = local.initial_controller(task, LocalConfig())
+    finally:
+        task.close()
+    assert torch.equal(learner.p_cur.k, hold.k) and learner.start_cost == float("inf")

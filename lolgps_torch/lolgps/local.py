@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -34,7 +35,7 @@ from lolgps_torch.controllers import hold_controller, smoothed_noise
 from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
-from lolgps_torch.errors import check_fields
+from lolgps_torch.errors import NumericalError, check_fields
 from lolgps_torch.policy import GaussianPolicy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
@@ -205,7 +206,16 @@ class LocalLearner:
         model = config.dynamics.prior == "model"
         self.fitter = DynamicsFitter(config.dynamics, task.model.linearize if model else None)
         if model and config.model_plans > 0:
-            self.p_cur, self.start_cost = planned_controller(task, self.targets, self.p_cur, config)
+            try:
+                self.p_cur, self.start_cost = planned_controller(
+                    task, self.targets, self.p_cur, config
+                )
+            except NumericalError as error:  # the hold is a safe start: learn from it
+                warnings.warn(
+                    f"hole {offset}: the first controller could not be planned on the arm's "
+                    f"model ({error}); starting from the hold",
+                    stacklevel=2,
+                )
         self.step_mult = config.cstep.step_mult_init
         self.accepted: Accepted | None = None
 

@@ -80,7 +80,7 @@ def _evaluate(
     gain, factor, eta, solved = solve_with_retry(
         problem, eta, config.pd_delta, config.eta_max, config.pd_retry_width
     )
-    if not bool(solved.any()):
+    if not bool(solved.any()):  # no candidate solved: a numerical failure
         require_solved(solved, config.eta_max)
     keep = torch.nonzero(solved).squeeze(-1)  # rounding can break the largest etas alone
     policy = to_policy(gain[keep], factor[keep], eta[keep])
