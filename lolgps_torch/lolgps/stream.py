@@ -77,8 +77,8 @@ class StreamConfig:
     :param max_iterations: iteration limit per condition.
     :param transfer: always learn a new condition locally (none, the paper),
         or rehearse the policy instead where its noiseless rollout already succeeds (policy:
-        fewer rollouts, but lower success on the Panda's test areas, docs/RESULTS.md
-        sections 9.3 and 18).
+        fewer rollouts, but the rehearsed positions are taught by the policy, less precisely
+        than by a local controller, docs/RESULTS.md sections 18 and 21).
     :param transfer_phases: iterations of the policy's own rollouts a rehearsal takes.
     :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0: one S-step, as in the paper; 6 rather than 3 reached 69
