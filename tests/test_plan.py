@@ -1,7 +1,7 @@
 """The C-step iterated on a model before any sample (docs/ALGORITHM.md section 4.2): against
-the Riccati recursion on a linear system, its trust region, convergence on a nonlinear system
-by the system's own rollout, and the model-planned first controller of the peg task on the KUKA
-and on published descriptions."""
+the Riccati recursion on a linear system, its trust region, an independent optimum of a
+nonlinear system by the system's own rollout, and the model-planned first controller of the peg
+task on the KUKA and on published descriptions, with its fallback to the hold."""
 
 from __future__ import annotations
 
