@@ -57,6 +57,7 @@ STREAM_FLAGS = ConfigFlags(
         "samples": ("local.samples",),
         "distill-steps": ("policy.steps",),
         "pre-weight": ("policy.pre_weight",),
+        "adam-dtype": ("policy.adam_dtype",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),
         "dynamics-prior": ("local.dynamics.prior",),
