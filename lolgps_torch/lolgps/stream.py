@@ -239,14 +239,15 @@ class StreamLearner:
 
     def phases(self, offset: tuple[float, float]) -> tuple[int, int]:
         """The iterations with successes local learning needs at ``offset``, and the probe
-        rollouts spent to decide: ``transfer_phases`` where transfer is on and the trained
-        policy's noiseless rollout already succeeds there (forward transfer: fewer rollouts
-        where the policy does the task), else ``success_phases``."""
+        rollouts spent to decide: ``transfer_phases`` (at most ``success_phases``) where
+        transfer is on and the trained policy's noiseless rollout already succeeds there
+        (forward transfer: fewer rollouts where the policy does the task), else
+        ``success_phases``."""
         cfg = self.config
         if cfg.transfer == "none" or not self.policy.trained:
             return cfg.success_phases, 0
         reached = policy_distances(self.task, self.policy, [offset])[0] < self.threshold
-        return (cfg.transfer_phases if reached else cfg.success_phases), 1
+        return min(cfg.transfer_phases if reached else cfg.success_phases, cfg.success_phases), 1
 
     def learn_locally(
         self,
