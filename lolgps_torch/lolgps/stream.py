@@ -93,7 +93,7 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
-    transfer: Transfer = "none"
+    transfer: Transfer = "policy"
     transfer_phases: int = 3
     repairs: int = 6
     seed: int = 0
@@ -228,7 +228,7 @@ class StreamLearner:
         candidates = [] if outcome.failure else [outcome.final]
         scored = []
         for labels in candidates + outcome.found.tried[::-1]:
-            local = noiseless_distance(self.task, labels.p_cur, offset)
+            local = self.noiseless(labels.p_cur, offset)
             if local < self.threshold:
                 return labels, local
             scored.append((local, labels))
@@ -236,6 +236,10 @@ class StreamLearner:
             return outcome.final, float("inf")
         local, labels = min(scored, key=lambda pair: pair[0])
         return labels, local
+
+    def noiseless(self, p: LinearGaussian, offset: tuple[float, float]) -> float:
+        """Final distance (m) of the controller ``p``'s noiseless rollout at ``offset``."""
+        return noiseless_distance(self.task, p, offset)
 
     def phases(self, offset: tuple[float, float]) -> tuple[int, int]:
         """The iterations with successes local learning needs at ``offset``, and the probe
