@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.evaluation.transfer import forward_transfer, rates_by_condition, success_auc
 from lolgps_torch.lolgps import StreamConfig
@@ -57,8 +58,9 @@ def test_a_condition_the_policy_already_does_costs_fewer_rollouts(
 ) -> None:
     """The policy learnt at one hole, then the same hole again as a new condition (where the
     policy is known to succeed: its rollout right after the S-step is the probe's): with
-    transfer it is rehearsed (a probe and one iteration of the policy's own rollouts), without
-    it learnt from the hold controller, from the same folder after the first condition."""
+    transfer it is learnt for ``transfer_phases`` iterations with successes after the probe,
+    without it for ``success_phases``, from the same folder after the first condition; either
+    way D_g is labelled by a local controller whose noiseless rollout succeeds."""
     d = StreamConfig()  # S-steps of 200 Adam steps, not 1000: enough to do the hole
     config = StreamConfig(
         transfer="policy",
@@ -80,3 +82,6 @@ def test_a_condition_the_policy_already_does_costs_fewer_rollouts(
     assert transferred.rollouts == 1 + config.local.samples < learnt.rollouts
     assert transferred.iterations == 1 and transferred.successful_samples > 0
     assert transferred.policy_success_after and learnt.policy_success_after
+    assert transferred.local_success and learnt.local_success
+    stored = ReplayBuffer(RunFolder(tmp_path / "transfer").replay_path).read_condition(1)
+    assert stored.p_cur is not None and stored.p_pre is not None  # a teacher, not the policy

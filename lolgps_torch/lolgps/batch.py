@@ -28,7 +28,7 @@ from lolgps_torch.data.records import ConditionSummary, DistillRecord
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.dynamics import GMMPrior, prior_from_config
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, as_controller, label
+from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label
 from lolgps_torch.lolgps.local import Linearizer, LocalLearner, iterate
 from lolgps_torch.lolgps.stream import (
     Log,
@@ -145,6 +145,6 @@ class BatchLearner:
         for m, item in enumerate(labelled):
             labels = item.labels
             self.replay.append_condition(
-                m, item.offset, item.data, iterations, as_controller(labels.p_cur), labels.p_pre
+                m, item.offset, item.data, iterations, labels.p_cur, labels.p_pre
             )
         return summary

@@ -29,38 +29,11 @@ from lolgps_torch.task import PegTask
 from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian, Trajectories
 
 
-class PolicyTeacher(NamedTuple):
-    """The global policy as the teacher of its own rollouts (forward transfer):
-    ``N(mu_theta(x_t), Sigma_pi)`` at every step, from a frozen copy of the policy."""
-
-    policy: GaussianPolicy
-    T: int
-
-    def mean_action(self, x: Tensor) -> Tensor:
-        """``mu_theta(x)`` for states ``[..., dX]`` -> ``[..., dU]``."""
-        with torch.no_grad():
-            return self.policy(x)
-
-    def precision(self) -> Tensor:
-        """``Sigma_pi^{-1}`` at every step, ``[T, dU, dU]``."""
-        inverse = torch.diag(1.0 / self.policy.variance)
-        return inverse.expand(self.T, *inverse.shape)
-
-
-Teacher = LinearGaussian | PolicyTeacher
-
-
-def as_controller(teacher: Teacher) -> LinearGaussian | None:
-    """The teacher as the replay stores it: a linear-Gaussian controller, or None for the
-    policy teaching itself (its rows hold its targets)."""
-    return teacher if isinstance(teacher, LinearGaussian) else None
-
-
 class Labels(NamedTuple):
     """The teachers whose means and precisions label a condition's D_g (p_cur, p_pre), and
     the iteration at which that p_cur acts."""
 
-    p_cur: Teacher
+    p_cur: LinearGaussian
     p_pre: LinearGaussian | None
     iteration: int
 
@@ -73,7 +46,7 @@ class Labelled(NamedTuple):
     labels: Labels
 
 
-def controller_targets(p: Teacher, x: Tensor) -> tuple[Tensor, Tensor]:
+def controller_targets(p: LinearGaussian, x: Tensor) -> tuple[Tensor, Tensor]:
     """Means ``[M, T, dU]`` and precisions ``[M, T, dU, dU]`` of ``p`` at states ``[M, T, dX]``."""
     mean = p.mean_action(x)
     prec = p.precision()

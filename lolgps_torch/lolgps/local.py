@@ -36,7 +36,6 @@ from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.errors import NumericalError, check_fields
-from lolgps_torch.policy import GaussianPolicy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 from lolgps_torch.trajopt import (
@@ -333,19 +332,3 @@ def iteration_record(
         time_fit=times[1],
         time_cstep=times[2],
     )
-
-
-def rehearse(
-    learner: LocalLearner, policy: GaussianPolicy, where: tuple[int, int]
-) -> tuple[Trajectories, IterationRecord]:
-    """One iteration of the global policy acting alone at the learner's condition (forward
-    transfer): N rollouts of ``pi`` with its own noise ``Sigma_pi`` (smoothed as the local
-    controllers' is); no dynamics fit, no C-step. The record has alpha 1 (p_act = pi)."""
-    t0 = time.perf_counter()
-    cfg, task = learner.config, learner.task
-    noise = smoothed_noise(cfg.samples, task.T, task.layout.dU, cfg.noise_smoothing,
-                           learner.generator).to(task.device)  # fmt: skip
-    samples = task.sample(policy_actor(policy, noise), [learner.offset] * cfg.samples)
-    record = iteration_record((*where, 1.0), samples, (0.0, 0.0, 0.0), learner.step_mult,
-                              (time.perf_counter() - t0, 0.0, 0.0))  # fmt: skip
-    return samples, record

@@ -3,16 +3,16 @@
     pi <- fresh net
     for each condition m as it arrives:
         p_cur <- hold controller, planned on the arm's model; p_pre <- none; D_g(m) <- {}
-        if transfer is on, pi is trained and its noiseless rollout at m succeeds:
-            D_g(m) <- successes of a few iterations of pi's own rollouts, labelled by pi
-        else repeat:
+        phases <- transfer_phases if transfer is on, pi is trained and its noiseless rollout
+                  at m succeeds, else success_phases
+        repeat:
             p_act <- p_cur if no p_pre else alpha p_pre + (1 - alpha) p_cur       (eq. 6)
             D_i <- N rollouts of p_act; fit dynamics
             p_pre <- linearise pi around D_i, if pi was trained                  (line 14)
             p_cur <- argmin E[cost] s.t. KL(p_cur || p_bar) <= eps                (eq. 7)
                      (p_bar = p_pre with cstep_anchor "pre", else the previous p_cur)
             D_g(m) += successful rollouts of D_i
-        until successful samples from ``success_phases`` iterations are in D_g(m), or a limit
+        until successful samples from ``phases`` iterations are in D_g(m), or a limit
         label D_g(m) with the final p_cur and p_pre (if its noiseless rollout misses: with
             the newest successfully sampled ones whose noiseless rollout succeeds)
         pi <- argmin KL(pi || p_cur) + lambda KL(pi || p_pre) over D_g(m) + replay D_g(<m) (eq. 8)
@@ -23,7 +23,6 @@ Naive sequential learning is the same loop without p_pre and without the replay.
 
 from __future__ import annotations
 
-import copy
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -43,12 +42,9 @@ from lolgps_torch.lolgps.distillation import (
     Distiller,
     Labelled,
     Labels,
-    PolicyTeacher,
-    Teacher,
-    as_controller,
     label,
 )
-from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate, rehearse
+from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
@@ -75,11 +71,12 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
-    :param transfer: always learn a new condition locally (none, the paper),
-        or rehearse the policy instead where its noiseless rollout already succeeds (policy:
-        fewer rollouts, but the rehearsed positions are taught by the policy, less precisely
-        than by a local controller, docs/RESULTS.md sections 18 and 21).
-    :param transfer_phases: iterations of the policy's own rollouts a rehearsal takes.
+    :param transfer: forward transfer: none (the paper: ``success_phases`` at every
+        condition), or policy: where the trained policy's noiseless rollout at a new
+        condition already succeeds (one probe rollout), local learning stops after
+        ``transfer_phases`` iterations with successes; D_g is labelled by its local
+        controllers all the same.
+    :param transfer_phases: the iterations with successes needed where the policy transfers.
     :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0: one S-step, as in the paper; 6 rather than 3 reached 69
         instead of 67 of 72 positions on 9 runs, docs/RESULTS.md section 14.1).
@@ -96,7 +93,7 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
-    transfer: Transfer = "none"
+    transfer: Transfer = "policy"
     transfer_phases: int = 3
     repairs: int = 6
     seed: int = 0
@@ -133,24 +130,14 @@ class StreamConfig:
 
 
 class Outcome(NamedTuple):
-    """What local learning (or rehearsal) at one condition produced: its successes, the
-    final controllers with the iteration count, the rollouts drawn, and a numerical failure
-    that ended it early (None: none)."""
+    """What local learning at one condition produced: its successes, the final controllers
+    with the iteration count, the rollouts drawn, and a numerical failure that ended it early
+    (None: none)."""
 
     found: Successes
     final: Labels
     rollouts: int
     failure: str | None
-
-
-class Spent(NamedTuple):
-    """Iterations and rollouts already spent at a condition."""
-
-    iterations: int
-    rollouts: int
-
-
-NOTHING_SPENT = Spent(0, 0)
 
 
 class Successes:
@@ -197,9 +184,8 @@ class StreamLearner:
         cfg, seed = self.config, condition_seed(self.config, index)
         learner = LocalLearner(self.task, offset, cfg.local, seed=seed)
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
-        outcome, probe = self.transfer(learner, linearize, index)
-        if outcome is None:  # learn locally, after the transfer's iterations
-            outcome = self.learn_locally(learner, linearize, index, probe)
+        phases, probes = self.phases(offset)
+        outcome = self.learn_locally(learner, linearize, index, phases, probes)
         failure, final = outcome.failure, outcome.final
         labels, local = self.teacher(outcome, offset)  # D_g is labelled here
         data = label(self.task, outcome.found.kept, labels)
@@ -229,7 +215,7 @@ class StreamLearner:
         save_policy(self.folder.checkpoint_dir(index), self.policy)
         self.folder.write_entry(index, entry.to_json())
         self.replay.append_condition(
-            index, offset, data, final.iteration, as_controller(labels.p_cur), labels.p_pre
+            index, offset, data, final.iteration, labels.p_cur, labels.p_pre
         )
         return entry
 
@@ -251,56 +237,39 @@ class StreamLearner:
         local, labels = min(scored, key=lambda pair: pair[0])
         return labels, local
 
-    def noiseless(self, teacher: Teacher, offset: tuple[float, float]) -> float:
-        """Final distance (m) of the teacher's noiseless rollout at ``offset``."""
-        if isinstance(teacher, PolicyTeacher):
-            return policy_distances(self.task, teacher.policy, [offset])[0]
-        return noiseless_distance(self.task, teacher, offset)
+    def noiseless(self, p: LinearGaussian, offset: tuple[float, float]) -> float:
+        """Final distance (m) of the controller ``p``'s noiseless rollout at ``offset``."""
+        return noiseless_distance(self.task, p, offset)
 
-    def transfer(
-        self, learner: LocalLearner, linearize: Linearizer | None, index: int
-    ) -> tuple[Outcome | None, Spent]:
-        """Forward transfer (``transfer="policy"``) at a new condition: where the trained
-        policy's noiseless rollout succeeds (one probe rollout), ``transfer_phases``
-        iterations of the policy acting alone (:func:`rehearse`) replace local learning, and
-        the policy labels D_g with its own means and covariance (:class:`PolicyTeacher`), so
-        the S-step is asked to keep what already works there. Returns the outcome, or None with what was spent
-        when the probe misses or a rehearsal iteration has no success: then the condition is
-        learnt as the paper does."""
+    def phases(self, offset: tuple[float, float]) -> tuple[int, int]:
+        """The iterations with successes local learning needs at ``offset``, and the probe
+        rollouts spent to decide: ``transfer_phases`` (at most ``success_phases``) where
+        transfer is on and the trained policy's noiseless rollout already succeeds there
+        (forward transfer: fewer rollouts where the policy does the task), else
+        ``success_phases``."""
         cfg = self.config
-        if cfg.transfer == "none" or linearize is None:
-            return None, NOTHING_SPENT
-        if not policy_distances(self.task, self.policy, [learner.offset])[0] < self.threshold:
-            return None, Spent(0, 1)
-        found = Successes()
-        teacher = PolicyTeacher(copy.deepcopy(self.policy).eval(), self.task.T)
-        for i in range(cfg.transfer_phases):
-            samples, record = rehearse(learner, self.policy, (index, i))
-            self.log(record)
-            spent = Spent(i + 1, 1 + (i + 1) * cfg.local.samples)
-            if not samples.success.any():
-                return None, spent
-            found.add(samples, Labels(teacher, None, i))
-        final = Labels(teacher, None, spent.iterations)
-        return Outcome(found, final, spent.rollouts, None), spent
+        if cfg.transfer == "none" or not self.policy.trained:
+            return cfg.success_phases, 0
+        reached = policy_distances(self.task, self.policy, [offset])[0] < self.threshold
+        return min(cfg.transfer_phases if reached else cfg.success_phases, cfg.success_phases), 1
 
     def learn_locally(
         self,
         learner: LocalLearner,
         linearize: Linearizer | None,
         index: int,
-        spent: Spent = NOTHING_SPENT,
+        phases: int,
+        probes: int = 0,
     ) -> Outcome:
         """Algorithm 2's inner loop: iterations of sample, fit, p_pre and C-step until
-        ``success_phases`` iterations had successful samples, or the limit. A numerical
-        failure ends the loop and is reported; the stream goes on. Iterations are numbered,
-        and rollouts counted, after those ``spent`` already (by a transfer that fell through).
-        """
+        ``phases`` iterations had successful samples, or the limit. A numerical failure ends
+        the loop and is reported; the stream goes on. The rollouts counted include ``probes``
+        already spent at the condition."""
         cfg = self.config
         p_pre: LinearGaussian | None = None
         alpha, found, iterations, failure = cfg.alpha, Successes(), 0, None
         try:
-            for i in range(spent.iterations, spent.iterations + cfg.max_iterations):
+            for i in range(cfg.max_iterations):
                 iterations, p_cur = i + 1, learner.p_cur
                 p_act = p_cur if p_pre is None else mix(p_pre, p_cur, alpha)  # eq. 6
                 used = alpha if p_pre is not None else 0.0
@@ -310,11 +279,11 @@ class StreamLearner:
                 self.log(record)
                 found.add(samples, Labels(p_cur, p_pre, i))
                 alpha = cfg.next_alpha(alpha)
-                if len(found.kept) >= cfg.success_phases:
+                if len(found.kept) >= phases:
                     break
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"
-        rollouts = spent.rollouts + (iterations - spent.iterations) * cfg.local.samples
+        rollouts = probes + iterations * cfg.local.samples
         return Outcome(found, Labels(learner.p_cur, p_pre, iterations), rollouts, failure)
 
     def linearizer(self) -> Linearizer | None:
