@@ -7,13 +7,14 @@ import shutil
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.evaluation.transfer import forward_transfer, rates_by_condition, success_auc
-from lolgps_torch.lolgps import StreamConfig
+from lolgps_torch.lolgps import StreamConfig, stream
 from lolgps_torch.lolgps.stream import StreamLearner
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -85,3 +86,24 @@ def test_a_condition_the_policy_already_does_costs_fewer_rollouts(
     assert transferred.local_success and learnt.local_success
     stored = ReplayBuffer(RunFolder(tmp_path / "transfer").replay_path).read_condition(1)
     assert stored.p_cur is not None and stored.p_pre is not None  # a teacher, not the policy
+
+
+def test_a_probe_that_succeeds_cuts_the_phases_to_transfer_phases_never_above_success_phases(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    learner = object.__new__(StreamLearner)
+    learner.task = SimpleNamespace(config=SimpleNamespace(world=SimpleNamespace(success_threshold=0.06)))  # fmt: skip
+    learner.policy = SimpleNamespace(trained=True)
+    probe = [0.01]
+    monkeypatch.setattr(stream, "policy_distances", lambda task, policy, offsets: probe)
+    learner.config = StreamConfig(success_phases=9, transfer_phases=3)
+    assert learner.phases((0.0, 0.0)) == (3, 1)  # the probe succeeded
+    probe[0] = 0.2
+    assert learner.phases((0.0, 0.0)) == (9, 1)  # it missed: the paper's phases, probe counted
+    probe[0] = 0.01
+    learner.config = StreamConfig(success_phases=1, transfer_phases=3)
+    assert learner.phases((0.0, 0.0)) == (1, 1)
+    learner.config = StreamConfig(transfer="none")
+    assert learner.phases((0.0, 0.0)) == (9, 0)  # no probe
+    learner.config, learner.policy.trained = StreamConfig(), False
+    assert learner.phases((0.0, 0.0)) == (9, 0)  # nothing to transfer yet
