@@ -251,7 +251,9 @@ class StreamLearner:
         if cfg.transfer == "none" or not self.policy.trained:
             return cfg.success_phases, 0
         reached = policy_distances(self.task, self.policy, [offset])[0] < self.threshold
-        return min(cfg.transfer_phases if reached else cfg.success_phases, cfg.success_phases), 1
+        if not reached:
+            return cfg.success_phases, 1
+        return min(cfg.transfer_phases, cfg.success_phases), 1
 
     def learn_locally(
         self,
