@@ -56,6 +56,7 @@ STREAM_FLAGS = ConfigFlags(
     renames={
         "samples": ("local.samples",),
         "distill-steps": ("policy.steps",),
+        "distill-batch": ("policy.batch_size",),
         "pre-weight": ("policy.pre_weight",),
         "adam-dtype": ("policy.adam_dtype",),
         "no-replay": ("replay",),
