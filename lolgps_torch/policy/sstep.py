@@ -11,11 +11,13 @@ Layout: rows are states flattened over samples and time, ``[M, ...]``.
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
 from torch import Tensor
+from torch.optim.adam import adam
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy.net import GaussianPolicy, PolicyConfig
@@ -177,6 +179,14 @@ def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch, dtype: torch.dtype) -
     return DistillBatch(*(f.to(dtype) if f.is_floating_point() else f for f in scaled))
 
 
+def cosine_rate(config: PolicyConfig, step: int) -> float:
+    """Adam's learning rate at ``step`` of ``config.steps``, along a cosine from
+    ``config.learning_rate`` to ``eta = 0.05 config.learning_rate``:
+    ``eta + (lr - eta) (1 + cos(pi step / steps)) / 2``."""
+    low = 0.05 * config.learning_rate
+    return low + (config.learning_rate - low) * (1.0 + math.cos(math.pi * step / config.steps)) / 2
+
+
 def distill(
     policy: GaussianPolicy,
     batch: DistillBatch,
@@ -187,8 +197,10 @@ def distill(
 
     Steps: whitening, ``Sigma_pi`` and output scaling from the batch (:func:`set_statistics`);
     each row's constant part of the loss (:func:`_row_constants`); then ``config.steps``
-    ``torch.optim.Adam`` steps (fused; fresh optimiser state, learning rate decayed along a cosine to
-    5% of ``config.learning_rate``) on minibatches of ``config.batch_size`` rows drawn
+    Adam steps (torch's fused functional ``torch.optim.adam.adam``: the ``torch.optim.Adam``
+    class would import torch._dynamo, about 2 s, in every process; fresh moments, learning
+    rate decayed along a cosine to 5% of ``config.learning_rate``, :func:`cosine_rate`) on
+    minibatches of ``config.batch_size`` rows drawn
     uniformly with replacement, from the current weights (the policy keeps what earlier
     S-steps taught it), on ``config.num_threads`` intra-op threads. Only the precision-weighted
     regression term (:func:`_row_quadratics`) depends on theta; autograd differentiates it, in
@@ -213,22 +225,24 @@ def distill(
     draws = draws.to(batch.x.device)
     history: list[Tensor] = []
     trainee = copy.deepcopy(policy).to(dtype)
-    weights = [w for w in trainee.parameters() if w.requires_grad]
-    optimiser = torch.optim.Adam(weights, lr=config.learning_rate, fused=True)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
-        optimiser, config.steps, eta_min=0.05 * config.learning_rate
-    )
+    weights: list[Tensor] = [w for w in trainee.parameters() if w.requires_grad]
+    first = [torch.zeros_like(w) for w in weights]
+    second = [torch.zeros_like(w) for w in weights]
+    counts = [torch.zeros((), dtype=torch.float32, device=w.device) for w in weights]
     with _intra_op_threads(config.num_threads):
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)
             rows_all = _sgd_rows(policy, batch, dtype)
-        for index in draws:
+        for step, index in enumerate(draws):
             rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
             loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
-            schedule.step()
+            grads = list(torch.autograd.grad(loss, weights))
+            with torch.no_grad():
+                adam(
+                    weights, grads, first, second, [], counts, fused=True, amsgrad=False,
+                    beta1=0.9, beta2=0.999, lr=cosine_rate(config, step), weight_decay=0.0,
+                    eps=1e-8, maximize=False,
+                )  # fmt: skip
             history.append(loss.detach())
     with torch.no_grad():
         for mine, trained in zip(policy.parameters(), trainee.parameters(), strict=True):

@@ -10,6 +10,8 @@ aae6f53) from the same weights on the same minibatches:
 - ``hand-written``: the backward pass and Adam on one flat weight vector that
   ``lolgps_torch.policy.sstep`` held up to aae6f53 (``FlatMLP``, ``Adam``), when the package on
   the path has them;
+- ``functional``: ``torch.autograd.grad`` and torch's functional fused ``adam``, the package's
+  engine (the ``torch.optim.Adam`` class imports torch._dynamo, about 2 s, in every process);
 - ``autograd``: ``loss.backward()`` through :func:`lolgps_torch.policy.kl_loss`'s quadratic
   part and ``torch.optim.Adam`` (default, ``foreach=True`` and ``fused=True``);
 - ``compile``: the same step under ``torch.compile`` (compile time reported separately);
@@ -29,6 +31,7 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from torch.optim.adam import adam
 
 from lolgps_torch.cli import run
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
@@ -89,6 +92,26 @@ def autograd_engine(
         optimiser.zero_grad(set_to_none=True)
         quadratic(policy(x[index]), target[index], prec[index]).backward()
         optimiser.step()
+
+    return step
+
+
+def functional_engine(policy: GaussianPolicy, rows: tuple[Tensor, ...]) -> Step:
+    """``torch.autograd.grad`` and torch's functional fused Adam, as the package's S-step runs."""
+    x, target, prec = rows
+    params = weights(policy)
+    first, second = [torch.zeros_like(w) for w in params], [torch.zeros_like(w) for w in params]
+    counts = [torch.zeros((), dtype=torch.float32) for _ in params]
+
+    def step(index: Tensor) -> None:
+        grads = list(
+            torch.autograd.grad(quadratic(policy(x[index]), target[index], prec[index]), params)
+        )
+        with torch.no_grad():
+            adam(
+                params, grads, first, second, [], counts, fused=True, amsgrad=False, beta1=0.9,
+                beta2=0.999, lr=1e-3, weight_decay=0.0, eps=1e-8, maximize=False,
+            )  # fmt: skip
 
     return step
 
@@ -184,6 +207,7 @@ def main() -> None:
         "autograd, Adam": lambda: autograd_engine(*fresh()),
         "autograd, Adam foreach": lambda: autograd_engine(*fresh(), foreach=True),
         "autograd, Adam fused": lambda: autograd_engine(*fresh(), fused=True),
+        "autograd, functional fused Adam": lambda: functional_engine(*fresh()),
         "torch.func, Adam foreach": lambda: func_engine(*fresh()),
         "torch.compile, Adam foreach": compiled,
     }
