@@ -19,7 +19,6 @@ os.environ["OMP_NUM_THREADS"] = "1"  # before torch is imported; inherited by su
 os.environ["LOLGPS_WORKERS"] = "1"  # scripts roll out in their own process, as tests do
 
 import fcntl
-import importlib
 import json
 import multiprocessing
 import runpy
@@ -138,9 +137,6 @@ def start_script(command: list[str], log: Path) -> BaseProcess:
     """``command`` (``[python, script, *args]``) started as a fork of this process, where the
     imports a new interpreter would spend seconds on are done; its output goes to ``log``, its
     ``exitcode`` is the script's exit status once it ends."""
-    # torch.optim imports torch._dynamo when it makes its first optimizer, a second's work:
-    # done once here rather than in every fork
-    importlib.import_module("torch._dynamo")
     process = multiprocessing.get_context("fork").Process(
         target=_script_main, args=(command[1], command[2:], str(log))
     )
