@@ -15,7 +15,8 @@ from lolgps_torch.errors import LolgpsError
 
 @dataclass(frozen=True)
 class IterationRecord:
-    """One iteration at one condition: its samples, its C-step and its phase times (s)."""
+    """One iteration at one condition: its samples, its C-step and its phase times (s); the
+    C-step time of iteration 0 includes the C-steps planned on the model before it."""
 
     condition: int
     iteration: int

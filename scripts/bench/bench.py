@@ -5,7 +5,8 @@
 
 - default:   the default stream (``run_stream.py --urdf URDF``, seed 0) run twice, with one
              rollout worker and with the default (this machine's cores): its wall time, and
-             the sums of its parts from metrics.jsonl (sampling, dynamics fits, C-steps,
+             the sums of its parts from metrics.jsonl (sampling, dynamics fits, C-steps with
+             the plans on the model,
              S-steps with their closed-loop checks) as ratios to the one-worker run's
              sampling; with ``--reference REV``, the same stream at git revision REV (checked
              out into a temporary worktree) first, in the same run, its parts as ratios to
@@ -101,8 +102,8 @@ def bench_algorithm(task: PegTask, repeats: int) -> dict[str, float]:
     """Fit and C-step times against the sampling time of the same iteration (median)."""
     learner = LocalLearner(task, (0.0, 0.0), LocalConfig(samples=len(task.sampler.worlds)), seed=0)
     rows = []
-    for _ in range(max(repeats, 5)):
-        _, _, it = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
+    for i in range(max(repeats, 5)):
+        _, _, it = iterate(learner, learner.p_cur, None, False, (0, i, 0.0))
         rows.append((it.time_sample, it.time_fit, it.time_cstep))
     rows = rows[1:]  # the first iteration has no warm-started GMM
     sample = statistics.median(r[0] for r in rows)
