@@ -150,7 +150,8 @@ def test_the_model_prior_plans_a_first_controller_that_inserts_the_peg() -> None
     hole; with the model prior the first controller is planned on the arm's model, and its
     samples, drawn in the simulator with contact, already succeed. The hold's cost, which
     judges a rollout diverged, is then the cost of resting at the start pose: less than the
-    hold's exploring samples cost, and far more than the planned samples'."""
+    hold's exploring samples cost, and far more than the planned samples'. The plan's time is
+    logged with the first iteration's C-step."""
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=5)
     try:
         model = LocalConfig()
@@ -163,13 +164,14 @@ def test_the_model_prior_plans_a_first_controller_that_inserts_the_peg() -> None
         assert torch.equal(hold.p_cur.cov, planned.p_cur.cov)
         assert not torch.equal(hold.p_cur.k, planned.p_cur.k)
         held, _, _ = iterate(hold, hold.p_cur, None, False, (0, 0, 0.0))
-        first, _, _ = iterate(planned, planned.p_cur, None, False, (0, 0, 0.0))
+        first, _, record = iterate(planned, planned.p_cur, None, False, (0, 0, 0.0))
     finally:
         task.close()
     assert not bool(held.success.any())
     assert int(first.success.sum()) >= 3
     assert 0.5 * hold.start_cost < planned.start_cost < hold.start_cost
     assert float(first.cost.sum(1).max()) < 0.1 * planned.start_cost
+    assert 0.0 < planned.plan_time <= record.time_cstep  # the plan is logged as C-step time
 
 
 @pytest.mark.parametrize("name", ["airo-ur3e", "rtb-rx200", "rtb-kr120"])
