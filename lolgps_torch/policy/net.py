@@ -25,8 +25,9 @@ class PolicyConfig:
     :param hidden_sizes: widths of the ReLU hidden layers (paper: 5 layers, 42 units each, i.e.
         input -> 4 x 42 ReLU -> dU).
     :param learning_rate: Adam step size (original GPS: 1e-3).
-    :param batch_size: rows per Adam minibatch. 256 halves the S-step's time against 512 at the
-        same positions reached over 26 runs on 11 arms (docs/RESULTS.md section 23).
+    :param batch_size: rows per Adam minibatch. 256 about halves the S-step's time against
+        512, with the same positions reached over 26 runs on 11 arms (docs/RESULTS.md section
+        23).
     :param steps: Adam steps per S-step (the original GPS: 4000 steps of 25). With 500 the
         Panda's seed-2 stream kept 6/8 positions (docs/RESULTS.md section 12).
     :param std_floor: lower bound on the whitening standard deviation, so constant state
