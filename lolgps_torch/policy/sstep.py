@@ -14,6 +14,7 @@ import copy
 import math
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -179,6 +180,36 @@ def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch, dtype: torch.dtype) -
     return DistillBatch(*(f.to(dtype) if f.is_floating_point() else f for f in scaled))
 
 
+class AdamMoments(NamedTuple):
+    """Adam's state for a list of weights: first and second moments, and step counts."""
+
+    first: list[Tensor]
+    second: list[Tensor]
+    counts: list[Tensor]
+
+    @classmethod
+    def zeros(cls, weights: list[Tensor]) -> AdamMoments:
+        """Fresh state: zero moments, no steps taken."""
+        return cls(
+            [torch.zeros_like(w) for w in weights],
+            [torch.zeros_like(w) for w in weights],
+            [torch.zeros((), dtype=torch.float32, device=w.device) for w in weights],
+        )
+
+
+def adam_step(weights: list[Tensor], grads: list[Tensor], moments: AdamMoments, lr: float) -> None:
+    """One Adam step (betas 0.9 and 0.999, eps 1e-8) of ``weights`` in place, by torch's fused
+    functional ``torch.optim.adam.adam``; ``moments`` advance with it. (The
+    ``torch.optim.Adam`` class does the same arithmetic, but its first use imports
+    torch._dynamo, about 2 s in every process.)"""
+    with torch.no_grad():
+        adam(
+            weights, grads, moments.first, moments.second, [], moments.counts, fused=True,
+            amsgrad=False, beta1=0.9, beta2=0.999, lr=lr, weight_decay=0.0, eps=1e-8,
+            maximize=False,
+        )  # fmt: skip
+
+
 def cosine_rate(config: PolicyConfig, step: int) -> float:
     """Adam's learning rate at ``step`` of ``config.steps``, along a cosine from
     ``config.learning_rate`` to ``eta = 0.05 config.learning_rate``:
@@ -197,10 +228,9 @@ def distill(
 
     Steps: whitening, ``Sigma_pi`` and output scaling from the batch (:func:`set_statistics`);
     each row's constant part of the loss (:func:`_row_constants`); then ``config.steps``
-    Adam steps (torch's fused functional ``torch.optim.adam.adam``: the ``torch.optim.Adam``
-    class would import torch._dynamo, about 2 s, in every process; fresh moments, learning
-    rate decayed along a cosine to 5% of ``config.learning_rate``, :func:`cosine_rate`) on
-    minibatches of ``config.batch_size`` rows drawn
+    Adam steps (:func:`adam_step`; fresh moments, learning rate decayed along a cosine to 5% of
+    ``config.learning_rate``, :func:`cosine_rate`) on minibatches of ``config.batch_size``
+    rows drawn
     uniformly with replacement, from the current weights (the policy keeps what earlier
     S-steps taught it), on ``config.num_threads`` intra-op threads. Only the precision-weighted
     regression term (:func:`_row_quadratics`) depends on theta; autograd differentiates it, in
@@ -226,9 +256,7 @@ def distill(
     history: list[Tensor] = []
     trainee = copy.deepcopy(policy).to(dtype)
     weights: list[Tensor] = [w for w in trainee.parameters() if w.requires_grad]
-    first = [torch.zeros_like(w) for w in weights]
-    second = [torch.zeros_like(w) for w in weights]
-    counts = [torch.zeros((), dtype=torch.float32, device=w.device) for w in weights]
+    moments = AdamMoments.zeros(weights)
     with _intra_op_threads(config.num_threads):
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)
@@ -237,12 +265,7 @@ def distill(
             rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
             loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
             grads = list(torch.autograd.grad(loss, weights))
-            with torch.no_grad():
-                adam(
-                    weights, grads, first, second, [], counts, fused=True, amsgrad=False,
-                    beta1=0.9, beta2=0.999, lr=cosine_rate(config, step), weight_decay=0.0,
-                    eps=1e-8, maximize=False,
-                )  # fmt: skip
+            adam_step(weights, grads, moments, cosine_rate(config, step))
             history.append(loss.detach())
     with torch.no_grad():
         for mine, trained in zip(policy.parameters(), trainee.parameters(), strict=True):

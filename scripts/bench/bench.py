@@ -6,11 +6,10 @@
 - default:   the default stream (``run_stream.py --urdf URDF``, seed 0) run twice, with one
              rollout worker and with the default (this machine's cores): its wall time, and
              the sums of its parts from metrics.jsonl (sampling, dynamics fits, C-steps with
-             the plans on the model,
-             S-steps with their closed-loop checks) as ratios to the one-worker run's
-             sampling; with ``--reference REV``, the same stream at git revision REV (checked
-             out into a temporary worktree) first, in the same run, its parts as ratios to
-             its own sampling, and each wall time as a ratio to it.
+             the plans on the model, S-steps with their closed-loop checks) as ratios to the
+             one-worker run's sampling; with ``--reference REV``, the same stream at git
+             revision REV (checked out into a temporary worktree) first, in the same run, its
+             parts as ratios to its own sampling, and each wall time as a ratio to it.
 - physics:   raw PyBullet stepping rate of this world (substeps/s: the same worlds, the arm
              held at q0 by constant gravity torques sent every substep, nothing else) against
              the rollout pipeline (initial controller, smoothed noise, gravity compensation,

@@ -4,8 +4,8 @@
 
 One markdown row per run folder: the final policy's successes at the training positions
 (summary.json), the seconds ``metrics.jsonl`` records for sampling, dynamics fits, C-steps
-(with the C-steps planned on the model) and S-steps (each S-step with its closed-loop check and repair rounds), the repair rounds,
-and the S-steps' time over the sampling time. The times are wall seconds of each phase, so
+(with the C-steps planned on the model) and S-steps (each S-step with its closed-loop check
+and repair rounds), the repair rounds, and the S-steps' time over the sampling time. The times are wall seconds of each phase, so
 on a shared machine compare the ratio, not the seconds.
 """
 

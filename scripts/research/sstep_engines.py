@@ -31,11 +31,10 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from torch.optim.adam import adam
 
 from lolgps_torch.cli import run
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
-from lolgps_torch.policy.sstep import set_statistics
+from lolgps_torch.policy.sstep import AdamMoments, adam_step, set_statistics
 from lolgps_torch.types import DistillBatch
 
 Step = Callable[[Tensor], None]
@@ -97,21 +96,15 @@ def autograd_engine(
 
 
 def functional_engine(policy: GaussianPolicy, rows: tuple[Tensor, ...]) -> Step:
-    """``torch.autograd.grad`` and torch's functional fused Adam, as the package's S-step runs."""
+    """``torch.autograd.grad`` and the package's :func:`adam_step` (torch's functional fused
+    Adam), as the S-step runs them."""
     x, target, prec = rows
     params = weights(policy)
-    first, second = [torch.zeros_like(w) for w in params], [torch.zeros_like(w) for w in params]
-    counts = [torch.zeros((), dtype=torch.float32) for _ in params]
+    moments = AdamMoments.zeros(params)
 
     def step(index: Tensor) -> None:
-        grads = list(
-            torch.autograd.grad(quadratic(policy(x[index]), target[index], prec[index]), params)
-        )
-        with torch.no_grad():
-            adam(
-                params, grads, first, second, [], counts, fused=True, amsgrad=False, beta1=0.9,
-                beta2=0.999, lr=1e-3, weight_decay=0.0, eps=1e-8, maximize=False,
-            )  # fmt: skip
+        loss = quadratic(policy(x[index]), target[index], prec[index])
+        adam_step(params, list(torch.autograd.grad(loss, params)), moments, 1e-3)
 
     return step
 
