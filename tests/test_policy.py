@@ -19,7 +19,14 @@ from lolgps_torch.policy import (
     optimal_variance,
 )
 from lolgps_torch.policy.net import AdamDtype
-from lolgps_torch.policy.sstep import _row_constants, _row_quadratics, set_statistics
+from lolgps_torch.policy.sstep import (
+    AdamMoments,
+    _row_constants,
+    _row_quadratics,
+    adam_step,
+    cosine_rate,
+    set_statistics,
+)
 from lolgps_torch.types import DistillBatch
 
 F64 = torch.float64
@@ -367,3 +374,31 @@ def test_gain_head_fits_a_high_gain_teacher() -> None:
         distill(policy, batch)
         errors[feedback] = _teacher_sds(policy, batch)
     assert errors[True] < 12.5 < 16.0 < errors[False]
+
+
+def test_adam_step_is_adam_written_out_and_the_rate_follows_its_cosine() -> None:
+    """The S-step's Adam step against the update written out (Kingma and Ba, bias-corrected:
+    ``m = b1 m + (1 - b1) g``, ``v = b2 v + (1 - b2) g^2``,
+    ``w -= lr (m / (1 - b1^t)) / (sqrt(v / (1 - b2^t)) + eps)``), over steps with changing
+    gradients and rates; and the learning rate's cosine at its ends and its middle."""
+    g = torch.Generator().manual_seed(0)
+    weights = [torch.randn(4, 3, generator=g, dtype=torch.float64), torch.randn(3, generator=g, dtype=torch.float64)]  # fmt: skip
+    mine = [w.clone() for w in weights]
+    moments = AdamMoments.zeros(weights)
+    m = [torch.zeros_like(w) for w in weights]
+    v = [torch.zeros_like(w) for w in weights]
+    for t in range(1, 6):
+        grads = [torch.randn(w.shape, generator=g, dtype=torch.float64) for w in weights]
+        lr = 0.01 * t
+        adam_step(weights, grads, moments, lr)
+        for i, grad in enumerate(grads):
+            m[i] = 0.9 * m[i] + 0.1 * grad
+            v[i] = 0.999 * v[i] + 0.001 * grad**2
+            step = lr * (m[i] / (1 - 0.9**t)) / ((v[i] / (1 - 0.999**t)).sqrt() + 1e-8)
+            mine[i] = mine[i] - step
+    for got, want in zip(weights, mine, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    config = PolicyConfig(learning_rate=0.2, steps=100)
+    assert cosine_rate(config, 0) == pytest.approx(0.2)
+    assert cosine_rate(config, 50) == pytest.approx(0.5 * (0.2 + 0.01))
+    assert cosine_rate(config, 100) == pytest.approx(0.01)
