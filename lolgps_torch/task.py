@@ -97,7 +97,7 @@ class PegTask:
             raise LolgpsError(f"{config.urdf}: the arm cannot be simulated: {message}") from None
         setup = WorldSetup(self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0)
         parallel = workers > 1 and self.device.type == "cpu"
-        self.pool = RolloutPool(setup, workers) if parallel else None
+        self.pool = RolloutPool(setup, workers, self.sampler) if parallel else None
         effort = torch.tensor(self.arm.effort, dtype=torch.float64)
         self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
         self._model: ControlStep | None = None

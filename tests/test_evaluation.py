@@ -48,6 +48,7 @@ from lolgps_torch.evaluation.square import SquareConfig
 from lolgps_torch.evaluation.table import format_table, markdown_table
 from lolgps_torch.evaluation.worker import Job, PolicyState, RolloutSetup, run_worker
 from lolgps_torch.policy.net import GaussianPolicy
+from lolgps_torch.sim.pool import main_script_hidden
 from lolgps_torch.task import PegTask, TaskConfig
 
 KUKA = "robots/kuka_peg.urdf"
@@ -400,11 +401,12 @@ def test_a_worker_error_reaches_the_caller() -> None:
         list(jobs_module._collect(results, {0}, []))
 
 
-def test_the_worker_imports_neither_kinematics_nor_urdf_parsing() -> None:
-    """A spawned worker imports its module and what that imports: none of the slow packages
-    that only building the task needs."""
+@pytest.mark.parametrize("module", ["lolgps_torch.evaluation.worker", "lolgps_torch.sim.pool"])
+def test_the_worker_imports_neither_kinematics_nor_urdf_parsing(module: str) -> None:
+    """A spawned worker (an evaluation's, a stream's rollouts') imports its module and what that
+    imports: none of the slow packages that only building the task needs."""
     code = (
-        "import sys, lolgps_torch.evaluation.worker; "
+        f"import sys, {module}; "
         "print(sorted({m.split('.')[0] for m in sys.modules} "
         "& {'pytorch_kinematics', 'yourdfpy', 'trimesh'}))"
     )
@@ -420,7 +422,7 @@ def test_spawned_workers_do_not_rerun_the_main_script(monkeypatch: pytest.Monkey
     main.__file__ = str(SCRIPT)
     monkeypatch.setitem(sys.modules, "__main__", main)
     assert "init_main_from_path" in multiprocessing.spawn.get_preparation_data("worker")
-    with jobs_module._main_script_hidden():
+    with main_script_hidden():
         hidden = multiprocessing.spawn.get_preparation_data("worker")
     assert "init_main_from_path" not in hidden and "init_main_from_name" not in hidden
     assert main.__file__ == str(SCRIPT) and main.__spec__ is None

@@ -11,11 +11,9 @@ worlds (a PyBullet client cannot be pickled) and returns states, actions and fin
 
 from __future__ import annotations
 
-import contextlib
 import multiprocessing
 import multiprocessing.queues
 import queue
-import sys
 from collections.abc import Iterator, Sequence
 from multiprocessing.process import BaseProcess
 from typing import NamedTuple
@@ -36,6 +34,7 @@ from lolgps_torch.evaluation.worker import (
     run_worker,
 )
 from lolgps_torch.progress import Bar
+from lolgps_torch.sim.pool import main_script_hidden
 from lolgps_torch.task import PegTask, TaskConfig
 
 
@@ -101,24 +100,6 @@ def _collect(
         yield index, rollouts
 
 
-@contextlib.contextmanager
-def _main_script_hidden() -> Iterator[None]:
-    """Hide the ``__main__`` module's file and spec while workers are spawned, so they do not
-    re-run the main script. multiprocessing re-runs it in each spawned process, for pickled
-    references into it; the workers need none (their target and data come from this package),
-    and a script that imports this module would cost each worker pytorch_kinematics and
-    yourdfpy's start-up, about a second."""
-    main = sys.modules["__main__"]
-    spec, path = main.__spec__, main.__dict__.pop("__file__", None)
-    main.__spec__ = None
-    try:
-        yield
-    finally:
-        main.__spec__ = spec
-        if path is not None:
-            main.__file__ = path
-
-
 def _setup(peg: PegTask, n_worlds: int, policies: Sequence[PolicyState]) -> RolloutSetup:
     """What a worker needs to run ``policies`` in worlds identical to ``peg``'s."""
     geometry = peg.geometry
@@ -160,7 +141,7 @@ def run_jobs(
     torch.set_num_threads(1)
     peg = None
     try:
-        with _main_script_hidden():
+        with main_script_hidden():
             for process in processes:
                 process.start()  # the workers import while this process builds the task
         peg = PegTask(task, n_worlds=n_worlds)

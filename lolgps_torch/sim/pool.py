@@ -2,14 +2,17 @@
 
 PyBullet steps a world on one core, so a batch of rollouts (an iteration's N samples, or the
 policy's noiseless check at every learnt position) is split into ``workers`` contiguous blocks
-of rows, one per process. Every rollout runs alone (:func:`~lolgps_torch.sim.rollout.rollout_rows`),
-so the batch's result is the same for any number of workers, one included.
+of rows: the first for this process's own world, one for each spawned worker. Every rollout
+runs alone (:func:`~lolgps_torch.sim.rollout.rollout_rows`), so the batch's result is the same
+for any number of workers, one included.
 
 A PyBullet client cannot be pickled: each worker builds its world from plain data
 (:class:`WorldSetup`) when it starts, and receives the acting controller as plain data (the
 actors of :mod:`lolgps_torch.sim.rollout` and :mod:`lolgps_torch.policy.actor` are named tuples
-of tensors). The processes start at the first batch, so a run that stops on bad input before
-sampling starts none, and they end with :meth:`RolloutPool.close` or with the main process.
+of tensors). The workers start with the pool, so they import and build their worlds while the
+main process prepares its first batch, and they end with :meth:`RolloutPool.close` or with the
+main process. They are spawned with the main script hidden (:func:`main_script_hidden`): they
+import this module and what it needs, not the script's own imports.
 """
 
 from __future__ import annotations
@@ -19,8 +22,10 @@ import multiprocessing.process
 import multiprocessing.queues
 import pickle
 import queue
+import sys
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -61,6 +66,24 @@ def _failure(error: BaseException) -> BaseException:
     return error
 
 
+@contextmanager
+def main_script_hidden() -> Iterator[None]:
+    """Hide the ``__main__`` module's file and spec while processes are spawned, so they do
+    not re-run the main script. multiprocessing re-runs it in each spawned process, for pickled
+    references into it; workers whose target and data come from this package need none, and a
+    script that builds a task would cost each worker pytorch_kinematics' and yourdfpy's
+    start-up, about a second."""
+    main = sys.modules["__main__"]
+    spec, path = main.__spec__, main.__dict__.pop("__file__", None)
+    main.__spec__ = None
+    try:
+        yield
+    finally:
+        main.__spec__ = spec
+        if path is not None:
+            main.__file__ = path
+
+
 def _next_job(jobs: multiprocessing.queues.Queue[bytes | None]) -> bytes | None:
     """The next job, or None once the main process asks to stop or has ended (a killed run's
     workers do not outlive it)."""
@@ -97,37 +120,39 @@ def _serve(setup: WorldSetup, jobs: multiprocessing.queues.Queue[bytes | None],
 
 
 class RolloutPool:
-    """``workers`` processes with a world each, started at the first batch.
+    """This process's sampler and ``workers - 1`` spawned processes with a world each.
 
-    :param setup: the worlds to build.
-    :param workers: processes (at least 2; one worker is the main process's own sampler).
+    :param setup: the worlds the workers build (the same as ``own``'s).
+    :param workers: processes sharing a batch, this one included (at least 2).
+    :param own: this process's sampler; its first world runs the first block of each batch.
     """
 
-    def __init__(self, setup: WorldSetup, workers: int) -> None:
+    def __init__(self, setup: WorldSetup, workers: int, own: Sampler) -> None:
         if workers < 2:
             raise LolgpsError(f"a rollout pool needs at least 2 workers, got {workers}")
-        self.setup, self.workers = setup, workers
+        self.setup, self.workers, self.own = setup, workers, own
         self._procs: list[tuple[Any, Any, Any]] = []  # (process, jobs, results)
-
-    def _start(self) -> None:
         context = multiprocessing.get_context("spawn")
-        for _ in range(self.workers):
-            jobs, results = context.Queue(), context.Queue()
-            proc = context.Process(target=_serve, args=(self.setup, jobs, results), daemon=True)
-            proc.start()
-            self._procs.append((proc, jobs, results))
+        with main_script_hidden():
+            for _ in range(self.workers - 1):
+                jobs, results = context.Queue(), context.Queue()
+                proc = context.Process(target=_serve, args=(self.setup, jobs, results), daemon=True)
+                proc.start()
+                self._procs.append((proc, jobs, results))
 
     def rollout(self, act: Actor, offsets: Sequence[Position]) -> tuple[Tensor, Tensor, Tensor]:
         """The batch's rollouts, row i at ``offsets[i]`` acted on by ``act``'s row i, as
         :meth:`Sampler.rollout` returns them (CPU tensors)."""
-        if not self._procs:
-            self._start()
         n = len(offsets)
-        blocks = [b.tolist() for b in torch.arange(n).tensor_split(min(self.workers, n))]
+        mine, *blocks = [b.tolist() for b in torch.arange(n).tensor_split(min(self.workers, n))]
         used = self._procs[: len(blocks)]
         for (_, jobs, _), rows in zip(used, blocks, strict=True):
             jobs.put(pickle.dumps((act, list(offsets), rows)))
-        parts = [self._receive(proc, results) for proc, _, results in used]
+        try:  # while the workers roll out theirs
+            own: Any = rollout_rows(self.own, act, offsets, mine)
+        except Exception as error:
+            own = error
+        parts = [own, *(self._receive(proc, results) for proc, _, results in used)]
         failures = [p for p in parts if isinstance(p, BaseException)]
         if failures:
             raise failures[0]
