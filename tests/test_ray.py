@@ -1,5 +1,5 @@
-"""On a local two-CPU Ray instance, one for the module: CI-sized sweeps (two cells finish, a
-rerun skips them, a cell that fails is retried and reported while the other finishes) and an
+"""On a local two-CPU Ray instance, one for the module: a CI-sized sweep (a cell finishes, a
+cell that fails is retried and reported, a rerun skips the finished cell) and an
 evaluation whose actors give the process pool's results; and, with a stand-in for the ray
 module, when a connection starts and stops an instance of its own."""
 
@@ -87,38 +87,7 @@ def conditions(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def test_sweep_runs_two_cells_then_skips_them(
-    local_ray: None, conditions: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    argv = ["--seeds", "0-1", "--urdf", KUKA, "--conditions", str(conditions)]
-    argv += ["--out", str(tmp_path / "sweep"), "--", *TINY]
-    assert sweep.main(argv) == 0
-    out = tmp_path / "sweep"
-    names = ["lolgps-kuka_peg-paper-seed0", "lolgps-kuka_peg-paper-seed1"]
-    mtimes = [(out / n / "summary.json").stat().st_mtime_ns for n in names]
-    first = capsys.readouterr().out
-    assert (
-        "0 finished before (skipped), 0 to resume, 0 to evaluate, 2 new" in first
-        and "[2/2 done, 0 running, 0 failed" in first
-    )
-    rows = list(csv.DictReader((out / "summary.csv").open()))
-    assert len(rows) == 1 and rows[0]["seeds"] == "2"
-    # 1 iteration x 2 samples: the controller planned on the model succeeds at once
-    assert float(rows[0]["rollouts_mean"]) == 2.0
-    assert "| lolgps | kuka_peg | paper | 2 |" in (out / "summary.md").read_text()
-    recorded = json.loads((out / "sweep.json").read_text())
-    assert [c["status"] for c in recorded["cells"]] == ["finished", "finished"]
-
-    assert sweep.main(argv) == 0
-    assert (
-        "2 finished before (skipped), 0 to resume, 0 to evaluate, 0 new" in capsys.readouterr().out
-    )
-    assert [(out / n / "summary.json").stat().st_mtime_ns for n in names] == mtimes
-    recorded = json.loads((out / "sweep.json").read_text())
-    assert [c["status"] for c in recorded["cells"]] == ["skipped", "skipped"]
-
-
-def test_a_failing_cell_is_retried_and_reported_while_the_other_finishes(
+def test_a_sweep_finishes_a_cell_retries_a_failing_one_and_a_rerun_skips_the_finished(
     local_ray: None, conditions: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     broken = tmp_path / "broken_arm.urdf"
@@ -127,17 +96,35 @@ def test_a_failing_cell_is_retried_and_reported_while_the_other_finishes(
     argv = ["--urdf", KUKA, str(broken), "--conditions", str(conditions), "--out", str(out)]
     assert sweep.main([*argv, "--", *TINY]) == 1
     captured = capsys.readouterr()
+    assert "0 finished before (skipped), 0 to resume, 0 to evaluate, 2 new" in captured.out
+    assert "[1/2 done, 0 running, 1 failed" in captured.out
     assert "lolgps-broken_arm-paper-seed0 failed (error: " in captured.out  # the first attempt
     assert "lolgps-broken_arm-paper-seed0 FAILED: error: " in captured.out
     assert "lolgps-broken_arm-paper-seed0: error: " in captured.err
-    assert (out / "lolgps-kuka_peg-paper-seed0" / "summary.json").is_file()
     log = (out / "lolgps-broken_arm-paper-seed0" / sweep.LOG_FILE).read_text()
     assert log.count("$ ") == 2  # tried twice
     statuses = {c["name"]: c for c in json.loads((out / "sweep.json").read_text())["cells"]}
     assert statuses["lolgps-kuka_peg-paper-seed0"]["status"] == "finished"
     assert statuses["lolgps-broken_arm-paper-seed0"]["status"] == "failed"
     assert statuses["lolgps-broken_arm-paper-seed0"]["error"].startswith("error: ")
-    assert "`lolgps-broken_arm-paper-seed0`: error: " in (out / "summary.md").read_text()
+    summary = (out / "summary.md").read_text()
+    assert "| lolgps | kuka_peg | paper | 1 |" in summary
+    assert "`lolgps-broken_arm-paper-seed0`: error: " in summary
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert len(rows) == 1 and rows[0]["seeds"] == "1"
+    # 1 iteration x 2 samples: the controller planned on the model succeeds at once
+    assert float(rows[0]["rollouts_mean"]) == 2.0
+
+    finished = out / "lolgps-kuka_peg-paper-seed0" / "summary.json"
+    mtime = finished.stat().st_mtime_ns
+    rerun = ["--urdf", KUKA, "--conditions", str(conditions), "--out", str(out), "--", *TINY]
+    assert sweep.main(rerun) == 0
+    assert (
+        "1 finished before (skipped), 0 to resume, 0 to evaluate, 0 new" in capsys.readouterr().out
+    )
+    assert finished.stat().st_mtime_ns == mtime
+    recorded = json.loads((out / "sweep.json").read_text())
+    assert [c["status"] for c in recorded["cells"]] == ["skipped"]
 
 
 def test_evaluation_on_ray_equals_the_process_pool(local_ray: None, tmp_path: Path) -> None:
