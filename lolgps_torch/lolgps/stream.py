@@ -77,6 +77,10 @@ class StreamConfig:
         ``transfer_phases`` iterations with successes; D_g is labelled by its local
         controllers all the same.
     :param transfer_phases: the iterations with successes needed where the policy transfers.
+        2 rather than 3 cost 7 % fewer rollouts over 26 streams on 11 arms and 30 % fewer on
+        the 24-condition square stream, with the same positions and test areas (4 mm
+        robustness: 13 misses of 1 664 against 7); 1 lost test areas (docs/RESULTS.md
+        section 24, docs/HISTORY.md section 12).
     :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0: one S-step, as in the paper; 6 rather than 3 reached 69
         instead of 67 of 72 positions on 9 runs, docs/RESULTS.md section 14.1).
@@ -94,7 +98,7 @@ class StreamConfig:
     augment_scale: float = 2.0
     max_iterations: int = 25
     transfer: Transfer = "policy"
-    transfer_phases: int = 3
+    transfer_phases: int = 2
     repairs: int = 6
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
