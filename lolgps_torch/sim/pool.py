@@ -130,13 +130,13 @@ class RolloutPool:
     def __init__(self, setup: WorldSetup, workers: int, own: Sampler) -> None:
         if workers < 2:
             raise LolgpsError(f"a rollout pool needs at least 2 workers, got {workers}")
-        self.setup, self.workers, self.own = setup, workers, own
+        self.workers, self.own = workers, own
         self._procs: list[tuple[Any, Any, Any]] = []  # (process, jobs, results)
         context = multiprocessing.get_context("spawn")
         with main_script_hidden():
             for _ in range(self.workers - 1):
                 jobs, results = context.Queue(), context.Queue()
-                proc = context.Process(target=_serve, args=(self.setup, jobs, results), daemon=True)
+                proc = context.Process(target=_serve, args=(setup, jobs, results), daemon=True)
                 proc.start()
                 self._procs.append((proc, jobs, results))
 
