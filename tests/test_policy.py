@@ -21,6 +21,8 @@ from lolgps_torch.policy import (
 from lolgps_torch.policy.net import AdamDtype
 from lolgps_torch.policy.sstep import (
     AdamMoments,
+    _loop_rows,
+    _quadratic,
     _row_constants,
     _row_quadratics,
     adam_step,
@@ -202,6 +204,36 @@ def test_distill_rejects_an_empty_batch() -> None:
         distill(GaussianPolicy(3, 2), DistillBatch(*(field[:0] for field in batch)))
 
 
+def test_one_combined_quadratic_form_equals_the_two_on_real_precision_ranges() -> None:
+    """The loop's one quadratic form per row plus its constant (:func:`_loop_rows`) equals the
+    two terms of eq. 8 on the raw rows (:func:`_row_quadratics`) at any policy mean, with
+    teacher precisions spanning about 1e-2 to 1e6 across joints (a heavy shoulder beside a light
+    wrist) and rows with and without p_pre."""
+    M, dX, dU = 400, 5, 4
+    batch = random_batch(M=M, dX=dX, dU=dU, seed=31)
+    spread = torch.tensor([1e-2, 1.0, 1e3, 1e6], dtype=F64).sqrt()  # precisions 1e-2 .. 1e6
+    outer = spread[:, None] * spread[None, :]
+    batch = batch._replace(
+        mean_cur=batch.mean_cur / spread,
+        mean_pre=batch.mean_pre / spread,
+        prec_cur=batch.prec_cur * outer,
+        prec_pre=batch.prec_pre * outer,
+    )
+    policy = GaussianPolicy(dX, dU, PolicyConfig(pre_weight=0.1))
+    set_statistics(policy, batch, 0.1)
+    rows = _loop_rows(policy, batch, 0.1, F64)
+    for seed in range(3):
+        mean = (
+            batch.mean_cur
+            + torch.randn(M, dU, dtype=F64, generator=torch.Generator().manual_seed(seed)) / spread
+        )
+        z, target, prec = rows.unpack(torch.arange(M), dX, dU)
+        assert torch.allclose(z, (batch.x - policy.x_mean) / policy.x_std)
+        unscaled = (mean - policy.u_mean) / policy.u_scale
+        combined = 0.5 * _quadratic(unscaled - target, prec) + rows.constant
+        assert torch.allclose(combined, _row_quadratics(mean, batch, 0.1), rtol=1e-9, atol=1e-9)
+
+
 @pytest.mark.parametrize(
     ("feedback", "adam_dtype", "rel"),
     [(False, "float64", 1e-10), (True, "float64", 1e-10), (True, "float32", 1e-5)],
@@ -212,8 +244,9 @@ def test_distill_matches_autograd_adam_on_kl_loss(
     """The S-step against a plain float64 loop written from the loss on the raw rows:
     autograd through :func:`kl_loss`'s terms (per-row constants computed once),
     ``torch.optim.Adam`` and ``CosineAnnealingLR`` on the same minibatches, for the plain MLP
-    and the feedback head. In float64 the S-step's change of units (:func:`_sgd_rows`) changes
-    nothing beyond rounding; in float32 it agrees to float32's rounding."""
+    and the feedback head. In float64 the S-step's change of units and its two quadratic forms
+    combined into one (:func:`_loop_rows`) change nothing beyond rounding; in float32 it agrees
+    to float32's rounding."""
     batch = random_batch(M=300, dX=4, dU=3, seed=16)
     config = PolicyConfig(
         hidden_sizes=(16, 16),

@@ -158,26 +158,53 @@ def _intra_op_threads(n: int | None) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def _sgd_rows(policy: GaussianPolicy, batch: DistillBatch, dtype: torch.dtype) -> DistillBatch:
-    """The batch as the Adam loop reads it, in the net's own units and in ``dtype``: states
-    whitened, ``z = (x - x_mean) / x_std``; means scaled, ``(mu - u_mean) / u_scale``;
-    precisions scaled, ``S P S`` with ``S = diag(u_scale)``, so that :func:`_row_quadratics` of
-    the net's unscaled output equals that of ``mu_theta`` on the raw rows (the quadratic form
-    is invariant under the change of units); ``P_pre`` zeroed where there is no p_pre (so
-    gathered rows need no mask). Computed in float64 and then rounded: every field is O(1)
-    (the whitening resolves 1e-7 of a state's spread in float32, sub-micrometre for the peg)."""
+class LoopRows(NamedTuple):
+    """The rows as the Adam loop reads them (:func:`_loop_rows`): ``packed`` ``[M, dX + dU +
+    dU^2]`` holds each row's whitened state, combined target and combined precision side by
+    side (one gather per minibatch); ``constant`` ``[M]`` (float64) is the part of the
+    quadratic terms that the combination leaves independent of theta."""
+
+    packed: Tensor
+    constant: Tensor
+
+    def unpack(self, index: Tensor, dX: int, dU: int) -> tuple[Tensor, Tensor, Tensor]:
+        """States ``[B, dX]``, targets ``[B, dU]`` and precisions ``[B, dU, dU]`` of the rows
+        ``index``."""
+        z, target, prec = self.packed.index_select(0, index).split((dX, dU, dU * dU), dim=1)
+        return z, target, prec.unflatten(1, (dU, dU))
+
+
+def _loop_rows(
+    policy: GaussianPolicy, batch: DistillBatch, pre_weight: float, dtype: torch.dtype
+) -> LoopRows:
+    """The batch in the net's own units, its two quadratic terms combined into one.
+
+    Units: states whitened, ``z = (x - x_mean) / x_std``; means scaled, ``(mu - u_mean) /
+    u_scale``; precisions scaled, ``S P S`` with ``S = diag(u_scale)`` (the quadratic forms are
+    invariant under this change of units, so the net's unscaled output stands for
+    ``mu_theta``). Combination, per row, with ``A = P_cur``, ``B = has_pre P_pre``:
+
+        ``(mu - a)^T A (mu - a) + lambda (mu - b)^T B (mu - b)
+            = (mu - m)^T Q (mu - m) + (a - m)^T A (a - m) + lambda (b - m)^T B (b - m)``,
+        ``Q = A + lambda B``, ``m = Q^-1 (A a + lambda B b)``
+
+    (expand both sides with ``Q m = A a + lambda B b``), so the loop evaluates one quadratic
+    form per row instead of two. Computed in float64 and then rounded to ``dtype``: every
+    field is O(1) (the whitening resolves 1e-7 of a state's spread in float32,
+    sub-micrometre for the peg)."""
     scale = policy.u_scale
     outer = scale[:, None] * scale[None, :]
-    prec_pre = torch.where(batch.has_pre[:, None, None], batch.prec_pre, 0.0)
-    scaled = DistillBatch(
-        x=(batch.x - policy.x_mean) / policy.x_std,
-        mean_cur=(batch.mean_cur - policy.u_mean) / scale,
-        prec_cur=batch.prec_cur * outer,
-        mean_pre=(batch.mean_pre - policy.u_mean) / scale,
-        prec_pre=prec_pre * outer,
-        has_pre=batch.has_pre,
-    )
-    return DistillBatch(*(f.to(dtype) if f.is_floating_point() else f for f in scaled))
+    z = (batch.x - policy.x_mean) / policy.x_std
+    a, b = (batch.mean_cur - policy.u_mean) / scale, (batch.mean_pre - policy.u_mean) / scale
+    A = batch.prec_cur * outer
+    B = torch.where(batch.has_pre[:, None, None], batch.prec_pre * outer, 0.0)
+    b = torch.where(batch.has_pre[:, None], b, 0.0)
+    Q = A + pre_weight * B
+    m = torch.linalg.solve(Q, (A @ a.unsqueeze(-1) + pre_weight * B @ b.unsqueeze(-1)))
+    m = m.squeeze(-1)
+    constant = 0.5 * (_quadratic(a - m, A) + pre_weight * _quadratic(b - m, B))
+    packed = torch.cat([z, m, Q.flatten(1)], dim=1).to(dtype)
+    return LoopRows(packed, constant)
 
 
 class AdamMoments(NamedTuple):
@@ -233,9 +260,10 @@ def distill(
     rows drawn
     uniformly with replacement, from the current weights (the policy keeps what earlier
     S-steps taught it), on ``config.num_threads`` intra-op threads. Only the precision-weighted
-    regression term (:func:`_row_quadratics`) depends on theta; autograd differentiates it, in
-    the net's own units (:func:`_sgd_rows`) and in ``config.adam_dtype``: a copy of the net in
-    that type is trained and its weights are written back into the float64 policy. The loss
+    regression term (:func:`_row_quadratics`) depends on theta; autograd differentiates it as
+    one quadratic form per row, in the net's own units (:func:`_loop_rows`) and in
+    ``config.adam_dtype``: a copy of the net in that type is trained and its weights are
+    written back into the float64 policy. The loss
     recorded per step is the full KL loss of that minibatch. Marks the policy trained.
     Deterministic for a given ``generator`` state.
 
@@ -259,11 +287,12 @@ def distill(
     moments = AdamMoments.zeros(weights)
     with _intra_op_threads(config.num_threads):
         with torch.no_grad():
+            rows = _loop_rows(policy, batch, config.pre_weight, dtype)
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)
-            rows_all = _sgd_rows(policy, batch, dtype)
+            constant = constant + rows.constant
         for step, index in enumerate(draws):
-            rows = DistillBatch(*(field.index_select(0, index) for field in rows_all))
-            loss = _row_quadratics(trainee.unscaled(rows.x), rows, config.pre_weight).mean()
+            z, target, prec = rows.unpack(index, policy.dX, policy.dU)
+            loss = 0.5 * _quadratic(trainee.unscaled(z) - target, prec).mean()
             grads = list(torch.autograd.grad(loss, weights))
             adam_step(weights, grads, moments, cosine_rate(config, step))
             history.append(loss.detach())

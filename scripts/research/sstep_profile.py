@@ -9,7 +9,12 @@ as the new item labelled by its stored controllers, and the policy checkpointed 
 ``--repeats``, CPU time of this process) of each part: reading the replay, the new D_g's
 perturbed copies, the statistics and constant terms, the Adam loop (the whole call less
 those), and one closed-loop check (the policy's noiseless rollouts at the ``K + 1`` positions
-learnt so far).
+learnt so far). Last, the Adam loop's matrix products timed bare: for every linear layer of
+the net (the gain head included), the forward product ``Z W^T`` and the backward products
+``G W`` (all but the first layer) and ``G^T Z``, on minibatch-sized operands of the loop's
+type, repeated for the loop's steps. No arithmetic can make the loop cheaper than its
+products at the machine's matrix-product speed, so the ratio says how much of the loop is
+anything else.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
 from lolgps_torch.lolgps.run import load_run
 from lolgps_torch.lolgps.stream import policy_distances
 from lolgps_torch.policy import GaussianPolicy
-from lolgps_torch.policy.sstep import _row_constants, _sgd_rows, set_statistics
+from lolgps_torch.policy.sstep import _loop_rows, _row_constants, set_statistics
 from lolgps_torch.types import DistillBatch
 
 
@@ -52,6 +57,25 @@ def best_seconds(body: Callable[[], Any], repeats: int) -> tuple[float, Any]:
         result = body()
         best = min(best, time.process_time() - start)
     return best, result
+
+
+def product_seconds(policy: GaussianPolicy, rows: int, steps: int, dtype: torch.dtype) -> float:
+    """Process CPU seconds of ``steps`` rounds of the net's forward and backward matrix
+    products on ``rows`` rows (see the module docstring), operands drawn at random."""
+    layers = [m for m in policy.net if isinstance(m, torch.nn.Linear)]
+    if policy.config.feedback:
+        layers.append(policy.gain)
+    products = []
+    for i, layer in enumerate(layers):
+        out, into = layer.weight.shape
+        z, g = torch.randn(rows, into, dtype=dtype), torch.randn(rows, out, dtype=dtype)
+        w = torch.randn(out, into, dtype=dtype)
+        products += [(z, w.T), (g.T, z)] + ([(g, w)] if i > 0 else [])
+    start = time.process_time()
+    for _ in range(steps):
+        for a, b in products:
+            torch.mm(a, b)
+    return time.process_time() - start
 
 
 def main() -> None:
@@ -94,7 +118,7 @@ def main() -> None:
             set_statistics(policy, batch, config.pre_weight)
             with torch.no_grad():
                 _row_constants(policy.covariance(), batch, config.pre_weight)
-                _sgd_rows(policy, batch, getattr(torch, config.adam_dtype))
+                _loop_rows(policy, batch, config.pre_weight, getattr(torch, config.adam_dtype))
 
         t_stats, _ = best_seconds(statistics, args.repeats)
         state = {n: v.clone() for n, v in policy.state_dict().items()}
@@ -110,6 +134,10 @@ def main() -> None:
         offsets = [r.offset for r in loaded.records[: k + 1]]
         t_check, _ = best_seconds(lambda: policy_distances(task, policy, offsets), args.repeats)
     task.close()
+    dtype = getattr(torch, config.adam_dtype)
+    t_products, _ = best_seconds(
+        lambda: product_seconds(policy, config.batch_size, config.steps, dtype), args.repeats
+    )
     adam = t_all - t_read - t_aug - t_stats
     print(
         f"condition {k}: {batch.M} rows ({record.samples.x.shape[0]} new successes, "
@@ -120,6 +148,10 @@ def main() -> None:
         f"CPU seconds: S-step call {t_all:.2f} = replay read {t_read:.2f} + perturbed copies "
         f"{t_aug:.2f} + statistics {t_stats:.2f} + Adam loop {adam:.2f}; "
         f"one closed-loop check at {len(offsets)} positions {t_check:.2f}"
+    )
+    print(
+        f"the Adam loop's matrix products alone ({config.adam_dtype}): {t_products:.2f} "
+        f"({t_products / adam:.2f} of the loop)"
     )
 
 
