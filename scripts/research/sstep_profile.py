@@ -8,13 +8,20 @@ as the new item labelled by its stored controllers, and the policy checkpointed 
 ``K - 1``, with the run's S-step settings. It prints the rows, then the seconds (best of
 ``--repeats``, CPU time of this process) of each part: reading the replay, the new D_g's
 perturbed copies, the statistics and constant terms, the Adam loop (the whole call less
-those), and one closed-loop check (the policy's noiseless rollouts at the ``K + 1`` positions
+those, with the rows' rewrite into the net's units), and one closed-loop check (the policy's noiseless rollouts at the ``K + 1`` positions
 learnt so far). Last, the Adam loop's matrix products timed bare: for every linear layer of
 the net (the gain head included), the forward product ``Z W^T`` and the backward products
 ``G W`` (all but the first layer) and ``G^T Z``, on minibatch-sized operands of the loop's
 type, repeated for the loop's steps. No arithmetic can make the loop cheaper than its
 products at the machine's matrix-product speed, so the ratio says how much of the loop is
 anything else.
+
+``--actions FILE`` saves the policy the S-step call leaves, as its action means at the D_g
+states of conditions ``0 .. K``; ``--against FILE`` prints the largest difference from such a
+file, for instance one written by another checkout's code:
+
+    PYTHONPATH=OTHER python scripts/research/sstep_profile.py --run DIR --actions other.pt
+    python scripts/research/sstep_profile.py --run DIR --against other.pt
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
 from lolgps_torch.lolgps.run import load_run
 from lolgps_torch.lolgps.stream import policy_distances
 from lolgps_torch.policy import GaussianPolicy
-from lolgps_torch.policy.sstep import _loop_rows, _row_constants, set_statistics
+from lolgps_torch.policy.sstep import _row_constants, set_statistics
 from lolgps_torch.types import DistillBatch
 
 
@@ -46,6 +53,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--run", required=True, help="finished run folder")
     parser.add_argument("--condition", type=int, default=None, help="(default: the last)")
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--actions", default=None, help="save the fitted policy's actions here")
+    parser.add_argument("--against", default=None, help="compare them with this saved file")
     return parser.parse_args()
 
 
@@ -118,7 +127,6 @@ def main() -> None:
             set_statistics(policy, batch, config.pre_weight)
             with torch.no_grad():
                 _row_constants(policy.covariance(), batch, config.pre_weight)
-                _loop_rows(policy, batch, config.pre_weight, getattr(torch, config.adam_dtype))
 
         t_stats, _ = best_seconds(statistics, args.repeats)
         state = {n: v.clone() for n, v in policy.state_dict().items()}
@@ -131,6 +139,10 @@ def main() -> None:
             Distiller(task, config, stream.augment, stream.augment_scale, replay)(policy, [item], 0)
 
         t_all, _ = best_seconds(call, args.repeats)
+        with torch.no_grad():
+            actions = policy(
+                torch.cat([r.samples.x.flatten(0, 1) for r in loaded.records[: k + 1]])
+            )
         offsets = [r.offset for r in loaded.records[: k + 1]]
         t_check, _ = best_seconds(lambda: policy_distances(task, policy, offsets), args.repeats)
     task.close()
@@ -153,6 +165,19 @@ def main() -> None:
         f"the Adam loop's matrix products alone ({config.adam_dtype}): {t_products:.2f} "
         f"({t_products / adam:.2f} of the loop)"
     )
+    if args.actions is not None:
+        torch.save(actions, args.actions)
+    if args.against is not None:
+        other = torch.load(args.against)
+        if other.shape != actions.shape:
+            raise LolgpsError(
+                f"{args.against}: actions {tuple(other.shape)}, not {tuple(actions.shape)}"
+            )
+        gap = (actions - other).abs()
+        print(
+            f"actions against {args.against}: largest difference {float(gap.max()):.3g} "
+            f"(largest action {float(actions.abs().max()):.3g})"
+        )
 
 
 if __name__ == "__main__":
