@@ -7,6 +7,11 @@
             kept here as the reference (autograd through two masked quadratic forms per row,
             ``torch.optim.Adam``, ``CosineAnnealingLR``), on the same batch (30 000 rows) and
             draws, alternated; and the largest relative difference of their loss histories.
+- forms:    CPU time per step of the S-step's Adam loop as it runs (one packed gather and one
+            quadratic form per row, ``_loop_rows``) against the same loop on the two forms of
+            eq. 8 from six gathered fields (``_row_quadratics``, as ``kl_loss`` evaluates them),
+            on the same rows in the net's units, draws and net, alternated; the paired ratio,
+            and the largest relative difference of the two forms' row losses at the first step.
 - phases:   sampling, dynamics fit and C-step of the first iterations of one condition
             (5 rollouts each), as ratios to that iteration's sampling time.
 - replay:   the S-step with replay (``Distiller``: one new condition's D_g with its augmented
@@ -37,7 +42,15 @@ from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, initial_controller, iterate
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill, optimal_variance
-from lolgps_torch.policy.sstep import _row_constants, _row_quadratics
+from lolgps_torch.policy.sstep import (
+    AdamMoments,
+    _loop_rows,
+    _quadratic,
+    _row_constants,
+    _row_quadratics,
+    adam_step,
+    set_statistics,
+)
 from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.types import ConditionSamples, DistillBatch
 
@@ -180,7 +193,67 @@ def bench_replay(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
     return results
 
 
-BENCHES = {"sstep": bench_sstep, "phases": bench_phases, "replay": bench_replay}
+def bench_forms(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
+    """One quadratic form per row against two, in the Adam loop (module docstring)."""
+    dX, dU = task.layout.dX, task.layout.dU
+    batch = (
+        synthetic_condition(300, task.T, dX, dU, seed=0)
+        ._replace(has_pre=torch.arange(300) % 3 != 0)
+        .to_batch()
+    )
+    config = PolicyConfig(steps=steps)
+    policy = GaussianPolicy(dX, dU, config)
+    set_statistics(policy, batch, config.pre_weight)
+    one = _loop_rows(policy, batch, config.pre_weight, F64)
+    scale = policy.u_scale
+    outer = scale[:, None] * scale[None, :]
+    two = DistillBatch(  # the same rows in the net's units, the two forms' fields apart
+        (batch.x - policy.x_mean) / policy.x_std,
+        (batch.mean_cur - policy.u_mean) / scale,
+        batch.prec_cur * outer,
+        (batch.mean_pre - policy.u_mean) / scale,
+        torch.where(batch.has_pre[:, None, None], batch.prec_pre, 0.0) * outer,
+        batch.has_pre,
+    )
+    draws = torch.randint(batch.M, (steps, config.batch_size), generator=torch.Generator())
+
+    def one_form(net: GaussianPolicy, index: torch.Tensor) -> torch.Tensor:
+        z, target, prec = one.unpack(index, dX, dU)
+        return 0.5 * _quadratic(net.unscaled(z) - target, prec)
+
+    def two_forms(net: GaussianPolicy, index: torch.Tensor) -> torch.Tensor:
+        rows = DistillBatch(*(field.index_select(0, index) for field in two))
+        return _row_quadratics(net.unscaled(rows.x), rows, config.pre_weight)
+
+    def loop(loss: Callable[[GaussianPolicy, torch.Tensor], torch.Tensor]) -> float:
+        net = GaussianPolicy(dX, dU, config)
+        weights: list[torch.Tensor] = [w for w in net.parameters() if w.requires_grad]
+        moments = AdamMoments.zeros(weights)
+        start = time.process_time()
+        for index in draws:
+            grads = list(torch.autograd.grad(loss(net, index).mean(), weights))
+            adam_step(weights, grads, moments, config.learning_rate)
+        return (time.process_time() - start) / steps
+
+    first = GaussianPolicy(dX, dU, config)
+    with torch.no_grad():  # equal up to the constant that one form leaves out
+        reference = two_forms(first, draws[0])
+        gap = one_form(first, draws[0]) + one.constant[draws[0]] - reference
+    times = [(loop(two_forms), loop(one_form)) for _ in range(repeats)]
+    return {
+        "two_forms_ms_per_step": 1e3 * statistics.median(t for t, _ in times),
+        "one_form_ms_per_step": 1e3 * statistics.median(o for _, o in times),
+        "one / two (paired median)": statistics.median(o / t for t, o in times),
+        "row_loss_max_rel_diff": float((gap.abs() / reference.abs()).max()),
+    }
+
+
+BENCHES = {
+    "sstep": bench_sstep,
+    "forms": bench_forms,
+    "phases": bench_phases,
+    "replay": bench_replay,
+}
 
 
 def main() -> None:
