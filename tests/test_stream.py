@@ -258,6 +258,28 @@ def test_scale_table_reads_a_run(small_run: Path, run_script: Callable[..., Scri
     assert len(rows) == 2
 
 
+def test_first_divergence_names_the_first_iteration_that_differs(
+    small_run: Path, tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    """Timings aside, a run against itself never differs; against a copy whose second
+    iteration record has another mean cost, that iteration is named."""
+    run = small_run / "run"
+    script = "scripts/research/first_divergence.py"
+    same = run_script(script, str(run), str(run))
+    assert same.code == 0 and "iteration records are identical" in same.out, same.err[-2000:]
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    iterations = [r for r in records if "iteration" in r and "event" not in r]
+    iterations[1]["mean_cost"] *= 1.5
+    iterations[0]["time_sample"] += 1.0
+    (copy / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    result = run_script(script, str(copy), str(run))
+    expected = f"condition {iterations[1]['condition']}, iteration {iterations[1]['iteration']} "
+    assert result.code == 0 and f"first difference: {expected}" in result.out, result.err
+    assert "relative difference 0.5" in result.out
+
+
 def test_a_final_controller_that_misses_hands_d_g_to_the_newest_tried_one_that_succeeds() -> None:
     """The final p_cur has not been sampled: when its noiseless rollout succeeds it labels D_g;
     when it misses, the p_cur of the newest iteration with successful samples whose noiseless
