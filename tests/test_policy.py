@@ -198,6 +198,15 @@ def test_distill_ignores_pre_targets_without_p_pre() -> None:
     assert distill(clean, batch) == distill(dirty, garbage)
 
 
+def test_distill_names_a_teacher_precision_that_is_not_positive_definite() -> None:
+    """A singular p_cur precision is one error naming it, before any arithmetic uses it."""
+    batch, _ = nonlinear_batch(M=10, seed=9)
+    prec_cur = batch.prec_cur.clone()
+    prec_cur[3] = 0.0
+    with pytest.raises(LolgpsError, match="prec_cur is not positive definite"):
+        distill(GaussianPolicy(3, 2), batch._replace(prec_cur=prec_cur))
+
+
 def test_distill_rejects_an_empty_batch() -> None:
     batch, _ = nonlinear_batch(M=10, seed=9)
     with pytest.raises(LolgpsError, match="empty"):

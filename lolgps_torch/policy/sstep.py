@@ -287,8 +287,8 @@ def distill(
     moments = AdamMoments.zeros(weights)
     with _intra_op_threads(config.num_threads):
         with torch.no_grad():
+            constant = _row_constants(policy.covariance(), batch, config.pre_weight)  # checks P
             rows = _loop_rows(policy, batch, config.pre_weight, dtype)
-            constant = _row_constants(policy.covariance(), batch, config.pre_weight)
             constant = constant + rows.constant
         for step, index in enumerate(draws):
             z, target, prec = rows.unpack(index, policy.dX, policy.dU)
