@@ -117,14 +117,17 @@ def synthetic_condition(M: int, T: int, dX: int, dU: int, seed: int) -> Conditio
     return ConditionSamples(x, u, cost, final, mean_cur, prec_cur, mean_pre, prec_pre, has_pre)
 
 
+def eight_conditions(task: PegTask) -> DistillBatch:
+    """An 8-condition-sized S-step batch: 300 rollouts of the task's T steps, p_pre on two
+    rows in three."""
+    batch = synthetic_condition(300, task.T, task.layout.dX, task.layout.dU, seed=0)
+    return batch._replace(has_pre=torch.arange(300) % 3 != 0).to_batch()
+
+
 def bench_sstep(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
     """CPU time per Adam step, plain against current S-step, on an 8-condition-sized batch."""
     dX, dU = task.layout.dX, task.layout.dU
-    batch = (
-        synthetic_condition(300, task.T, dX, dU, seed=0)
-        ._replace(has_pre=torch.arange(300) % 3 != 0)
-        .to_batch()
-    )
+    batch = eight_conditions(task)
     config = PolicyConfig(steps=steps)
     plain: list[float] = []
     fast: list[float] = []
@@ -196,11 +199,7 @@ def bench_replay(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
 def bench_forms(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
     """One quadratic form per row against two, in the Adam loop (module docstring)."""
     dX, dU = task.layout.dX, task.layout.dU
-    batch = (
-        synthetic_condition(300, task.T, dX, dU, seed=0)
-        ._replace(has_pre=torch.arange(300) % 3 != 0)
-        .to_batch()
-    )
+    batch = eight_conditions(task)
     config = PolicyConfig(steps=steps)
     policy = GaussianPolicy(dX, dU, config)
     set_statistics(policy, batch, config.pre_weight)
