@@ -3,11 +3,12 @@
     python scripts/research/first_divergence.py RUN_A RUN_B
 
 Reads both runs' ``metrics.jsonl`` and prints the first iteration (condition, iteration) at
-which the two records differ in anything but their timings, with the relative difference of their mean sample costs; or
-that they never differ. Two runs whose code computes the same arithmetic in another order
-(the same S-step up to rounding) agree exactly until the first rollouts whose actions the
-rounding touched, and from there are two draws of the same learning: the closed loop with
-contact amplifies a difference of 1e-13 in an action to one in the outcome.
+which the two records differ in anything but their timings, with the relative difference of
+their mean sample costs; or that they never differ. Two runs whose code computes the same
+arithmetic in another order (the same S-step up to rounding) agree exactly until the first
+rollouts whose actions the rounding touched, and from there are two draws of the same learning:
+the closed loop with contact amplifies a difference of 1e-13 in an action to one in the
+outcome.
 """
 
 from __future__ import annotations

@@ -1,19 +1,20 @@
 """Where one stream S-step's time goes, rebuilt from a finished run (paper eq. 8).
 
     python scripts/research/sstep_profile.py --run DIR [--condition K] [--repeats 2]
+        [--actions FILE] [--against FILE]
 
-The S-step of condition ``K`` (default: the last) is rebuilt as the stream ran it: the
-replay of conditions ``0 .. K-1`` (copied into a temporary replay file), condition ``K``'s D_g
-as the new item labelled by its stored controllers, and the policy checkpointed after
-``K - 1``, with the run's S-step settings. It prints the rows, then the seconds (best of
-``--repeats``, CPU time of this process) of each part: reading the replay, the new D_g's
-perturbed copies, the statistics and constant terms, the Adam loop (the whole call less
-those, with the rows' rewrite into the net's units), and one closed-loop check (the policy's noiseless rollouts at the ``K + 1`` positions
-learnt so far). Last, the Adam loop's matrix products timed bare: for every linear layer of
-the net (the gain head included), the forward product ``Z W^T`` and the backward products
-``G W`` (all but the first layer) and ``G^T Z``, on minibatch-sized operands of the loop's
-type, repeated for the loop's steps. No arithmetic can make the loop cheaper than its
-products at the machine's matrix-product speed, so the ratio says how much of the loop is
+The S-step of condition ``K`` (default: the last) is rebuilt as the stream ran it: the replay
+of conditions ``0 .. K-1`` (copied into a temporary replay file), condition ``K``'s D_g as the
+new item labelled by its stored controllers, and the policy checkpointed after ``K - 1``, with
+the run's S-step settings. It prints the rows, then the seconds (best of ``--repeats``, CPU
+time of this process) of each part: reading the replay, the new D_g's perturbed copies, the
+statistics and constant terms, the Adam loop (the whole call less those, with the rows' rewrite
+into the net's units), and one closed-loop check (the policy's noiseless rollouts at the
+``K + 1`` positions learnt so far). Last, the Adam loop's matrix products timed bare: for every
+linear layer of the net (the gain head included), the forward product ``Z W^T`` and the
+backward products ``G W`` (all but the first layer) and ``G^T Z``, on minibatch-sized operands
+of the loop's type, repeated for the loop's steps. No arithmetic can make the loop cheaper than
+its products at the machine's matrix-product speed, so the ratio says how much of the loop is
 anything else.
 
 ``--actions FILE`` saves the policy the S-step call leaves, as its action means at the D_g
