@@ -20,14 +20,15 @@ from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.table import markdown_table
+from lolgps_torch.lolgps.run import read_run
 
 
 def row(path: Path, size: int) -> list[str]:
     """The table's cells for the run at ``path``, comparing its first and last ``size``
     conditions."""
     folder = RunFolder(path)
-    stream = folder.read_config()["stream"]
-    floor = 1 + stream["transfer_phases"] * stream["local"]["samples"]
+    stream = read_run(folder).stream
+    floor = 1 + stream.transfer_phases * stream.local.samples
     rollouts = [int(c["rollouts"]) for c in folder.read_summary()["conditions"]]
     if len(rollouts) < 2 * size:
         raise LolgpsError(f"{path}: {len(rollouts)} conditions, fewer than 2 x --size {size}")
