@@ -5,6 +5,7 @@ Conditions are planar hole offsets ``(dx, dy)`` (m) from the nominal hole positi
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -32,11 +33,18 @@ from lolgps_torch.types import Trajectories
 class TaskConfig:
     """Everything that defines the task.  :param urdf: path of the arm's URDF.
     :param ee_link: end-effector link (detected when None).
+    :param base_link: the link the arm's chain starts from, every joint above it and off the
+        chain held fixed (the root when None: a mobile base's or torso's joints, if any, are
+        then part of the chain).
+    :param hold: JOINT=VALUE pairs: where held joints stay (rad or m; default 0, or the middle
+        of the joint's limits when 0 is outside them).
     :param package_path: folders searched for the ROS packages that ``package://`` mesh URIs
         name, after the URDF's ancestors and ROS_PACKAGE_PATH."""
 
     urdf: str
     ee_link: str | None = None
+    base_link: str | None = None
+    hold: tuple[str, ...] = ()
     package_path: tuple[str, ...] = ()
     peg: PegConfig = field(default_factory=PegConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
@@ -46,6 +54,9 @@ class TaskConfig:
     def __post_init__(self) -> None:
         if self.ee_link is not None and not self.ee_link:
             raise LolgpsError("--ee-link must name a link")
+        if self.base_link is not None and not self.base_link:
+            raise LolgpsError("--base-link must name a link")
+        self.held()  # checks the pairs
         for folder in self.package_path:
             if not os.path.isdir(folder):
                 raise LolgpsError(f"--package-path {folder}: not a folder")
@@ -58,6 +69,35 @@ class TaskConfig:
         for name, kind in parts:
             if not isinstance(getattr(self, name), kind):
                 raise LolgpsError(f"task {name} settings must be a {kind.__name__}")
+
+    def held(self) -> dict[str, float]:
+        """The ``hold`` pairs as joint -> position; a malformed pair is a :class:`LolgpsError`."""
+        held: dict[str, float] = {}
+        for pair in self.hold:
+            name, sign, text = pair.partition("=")
+            try:
+                value = float(text)
+            except ValueError:
+                value = math.nan
+            if not (name and sign and math.isfinite(value)) or name in held:
+                raise LolgpsError(
+                    f"--hold {pair}: expected JOINT=VALUE, a joint named once and a finite "
+                    f"position (rad or m)"
+                )
+            held[name] = value
+        return held
+
+
+def load_task_arm(config: TaskConfig) -> ArmSpec:
+    """The arm of the task ``config`` describes (:func:`~lolgps_torch.robot.arm.load_arm`)."""
+    return load_arm(
+        config.urdf,
+        config.ee_link,
+        config.peg,
+        config.package_path,
+        base_link=config.base_link,
+        hold=config.held(),
+    )
 
 
 class PegTask:
@@ -77,7 +117,7 @@ class PegTask:
             raise LolgpsError(f"workers {workers}: must be at least 1")
         self.config = config
         self.device = torch.device(device)
-        self.arm: ArmSpec = load_arm(config.urdf, config.ee_link, config.peg, config.package_path)
+        self.arm: ArmSpec = load_task_arm(config)
         self.layout = StateLayout(self.arm.dof)
         self.kinematics = PegKinematics(self.arm, self.device)
         try:  # an arm the loader accepts can still be one no pose or simulation works for

@@ -27,6 +27,7 @@ def main() -> None:
     arm = task.arm
     print(f"URDF          {arm.source_path}  (sha256 {arm.source_sha256[:12]})")
     print(f"root link     {arm.root_link}")
+    print(f"base link     {arm.base_link}  (the arm's chain starts here; --base-link)")
     print(f"end effector  {arm.ee_link}")
     peg = "carried by the URDF" if arm.peg_link != "lolgps_peg" else "attached by lolgps_torch"
     print(f"peg           link {arm.peg_link} ({peg}), radius {arm.peg_radius:.4f} m")
@@ -41,6 +42,10 @@ def main() -> None:
             f"{name:<24}{math.degrees(arm.lower[i]):9.1f}{math.degrees(arm.upper[i]):9.1f}"
             f"{arm.effort[i]:9.1f}{arm.velocity[i]:8.2f}{math.degrees(task.geometry.q0[i]):9.1f}"
         )
+    if arm.held:
+        print("\nheld fixed    (above the base link, off the chain, mimic or prismatic; --hold)")
+        for name, value in arm.held:
+            print(f"  {name:<24}{value:9.4g}")
     lay = task.layout
     print(f"\nstate layout  dX = {lay.dX}, dU = {lay.dU}")
     for block, (start, stop) in lay.as_dict().items():

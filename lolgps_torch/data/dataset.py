@@ -26,11 +26,11 @@ from lolgps_torch.data.replay import ConditionRecord, ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder, read_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.progress import progress
-from lolgps_torch.robot.arm import ArmSpec, load_arm
+from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import place_task
 from lolgps_torch.state import StateLayout
-from lolgps_torch.task import TaskConfig
+from lolgps_torch.task import TaskConfig, load_task_arm
 
 FORMAT = "lolgps_torch.dataset"
 # Version 2 holds the T+1 states of each trajectory; version 1 held the first T.
@@ -239,7 +239,7 @@ def read_run(run_dir: str | Path) -> RunData:
     config, task = _read_config(folder)
     summary = read_json(folder.summary_path) if folder.summary_path.is_file() else None
     records = _read_replay(ReplayBuffer(folder.replay_path))
-    arm = load_arm(task.urdf, task.ee_link, task.peg, task.package_path)
+    arm = load_task_arm(task)
     geometry = place_task(arm, PegKinematics(arm, "cpu"), task.placement, task.world.depth)
     mouth = torch.tensor(geometry.nominal_mouth, dtype=torch.float64)
     trajectories = _flatten(records, task.world.success_threshold)

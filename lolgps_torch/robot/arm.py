@@ -27,7 +27,7 @@ import os
 import re
 import warnings
 import xml.etree.ElementTree as ET
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
 
@@ -49,6 +49,8 @@ CARRIED_PEG_TIP = "peg_tip"
 ATTACHED_PEG = "lolgps_peg"
 ATTACHED_PEG_TIP = "lolgps_peg_tip"
 _ACTUATED = ("revolute", "continuous")
+_HELD = ("revolute", "continuous", "prismatic")  # the moving joints a position can be held at
+_DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
 # a prefix of an element's or attribute's name, as in <drake:member> or drake:acceleration="..."
 _PREFIXED = re.compile(r"(?:<|</|\s)([A-Za-z_][\w.-]*):[A-Za-z_][\w.-]*(?=[\s=/>])")
 # mesh file extensions PyBullet reads (any case)
@@ -123,6 +125,10 @@ class ArmSpec:
     :param peg_radius: peg radius (m), from the URDF or the attached peg.
     :param peg_axis: the end-effector link's axis the attached peg points along ("" for a peg
         the URDF carries).
+    :param base_link: the link the arm's chain starts from (the root unless chosen).
+    :param held: every joint of the description that could move but is held fixed (above the
+        base link, off the chain, mimic or prismatic), with the position it is held at (rad or
+        m), in the description's order.
     """
 
     urdf_text: str
@@ -140,6 +146,8 @@ class ArmSpec:
     point_offsets: tuple[tuple[float, float, float], tuple[float, float, float]]
     peg_radius: float
     peg_axis: str = ""
+    base_link: str = ""
+    held: tuple[tuple[str, float], ...] = ()
 
     @property
     def dof(self) -> int:
@@ -151,35 +159,27 @@ def load_arm(
     ee_link: str | None = None,
     peg: PegConfig | None = None,
     package_path: Sequence[str] = (),
+    base_link: str | None = None,
+    hold: Mapping[str, float] | None = None,
 ) -> ArmSpec:
     """Read and validate a URDF arm; raise :class:`LolgpsError` with a one-line reason.
 
     :param path: the URDF file, as published (``package://`` mesh URIs are searched for, see
         :mod:`.packages`; meshes that are not found are only warned about).
-    :param ee_link: the end-effector link; detected when None (:func:`_detect_ee_link`).
+    :param ee_link: the end-effector link; detected below ``base_link`` when None
+        (:func:`_detect_ee_link`).
     :param peg: the peg attached when the URDF carries none.
     :param package_path: folders searched for ROS packages after ``ROS_PACKAGE_PATH``.
+    :param base_link: the link the arm's chain starts from (the root when None); every joint
+        above it is held fixed, as is every joint off the chain.
+    :param hold: positions (rad or m) of held joints; the others are held at 0, or at the
+        middle of their limits when 0 is outside them.
     """
     peg = peg or PegConfig()
     raw, tree, robot, root = _parse(path, package_path)
     parent_joint = {j.child: j for j in robot.robot.joints}
     links = [link.name for link in robot.robot.links]
-
-    def path_joints(link: str) -> list[yourdfpy.Joint]:
-        chain = []
-        while link in parent_joint:
-            joint = parent_joint[link]
-            chain.append(joint)
-            link = joint.parent
-        return chain[::-1]
-
-    if not any(j.type in _ACTUATED for j in robot.robot.joints):
-        raise LolgpsError(f"{path}: URDF has no revolute or continuous joints to actuate")
-    if ee_link is None:
-        ee_link = _detect_ee_link(robot, root, path)
-    elif ee_link not in links:
-        raise LolgpsError(f"unknown end-effector link {ee_link!r}; links are: {', '.join(links)}")
-    chain = path_joints(ee_link)
+    start, ee_link, chain = _arm_chain(robot, root, path, ee_link, base_link)
     actuated = _actuated_joints(chain, ee_link)
     elements = {j.get("name"): j for j in tree.findall("joint")}
     unknown = [
@@ -187,7 +187,7 @@ def load_arm(
         for j in actuated
         if check_actuated_limit(elements[j.name], f"{path}: joint {j.name!r}")
     ]
-    _lock_joints(tree, {j.name for j in actuated})
+    held = _lock_joints(tree, {j.name for j in actuated}, dict(hold or {}))
 
     carries_peg = CARRIED_PEG_TIP in links and ee_link == CARRIED_PEG_TIP
     if carries_peg:
@@ -223,10 +223,44 @@ def load_arm(
         point_offsets=((0.0, 0.0, 0.0), (0.0, 0.0, -peg.point_separation)),
         peg_radius=peg_radius,
         peg_axis=axis,
+        base_link=start,
+        held=held,
     )
     if massless:
         _check_mass_matrix(arm, massless, path)
     return _with_derived_effort(arm, unknown, path) if unknown else arm
+
+
+def _arm_chain(
+    robot: yourdfpy.URDF, root: str, path: str, ee_link: str | None, base_link: str | None
+) -> tuple[str, str, list[yourdfpy.Joint]]:
+    """The arm's base link (``base_link``, else the root), its end-effector link (``ee_link``,
+    else detected below the base link) and the joints from the base link to the end effector;
+    unknown links, and a base link off the path from the root to the end effector, are
+    errors."""
+    parent_joint = {j.child: j for j in robot.robot.joints}
+    links = [link.name for link in robot.robot.links]
+    if not any(j.type in _ACTUATED for j in robot.robot.joints):
+        raise LolgpsError(f"{path}: URDF has no revolute or continuous joints to actuate")
+    if base_link is not None and base_link not in links:
+        raise LolgpsError(f"unknown base link {base_link!r}; links are: {', '.join(links)}")
+    start = base_link or root
+    if ee_link is None:
+        ee_link = _detect_ee_link(robot, start, path)
+    elif ee_link not in links:
+        raise LolgpsError(f"unknown end-effector link {ee_link!r}; links are: {', '.join(links)}")
+    full, link = [], ee_link
+    while link in parent_joint:
+        full.append(parent_joint[link])
+        link = parent_joint[link].parent
+    full.reverse()
+    above = [j.parent for j in full]
+    if start not in (*above, ee_link):
+        raise LolgpsError(
+            f"base link {start!r} is not on the chain from the root to {ee_link!r}; the links "
+            f"on it are: {', '.join(above)}"
+        )
+    return start, ee_link, full[above.index(start) :] if start in above else []
 
 
 def _check_mass_matrix(arm: ArmSpec, massless: Sequence[str], path: str) -> None:
@@ -266,9 +300,11 @@ def _with_derived_effort(arm: ArmSpec, unknown: Sequence[str], path: str) -> Arm
     tree = ET.fromstring(arm.urdf_text)
     for joint in tree.findall("joint"):
         name = joint.get("name") or ""
-        limit = joint.find("limit")
-        if name not in unknown or limit is None:
+        if name not in unknown:
             continue
+        limit = joint.find("limit")
+        if limit is None:  # a continuous joint published without one
+            limit = ET.SubElement(joint, "limit", velocity=repr(_DEFAULT_VELOCITY))
         limit.set("effort", repr(derived[name]))
         warnings.warn(
             f"{path}: joint {name!r}: <limit> effort is not given (0); using {derived[name]:.4g} "
@@ -348,8 +384,9 @@ def _actuated_joints(chain: list[yourdfpy.Joint], ee_link: str) -> list[yourdfpy
     locked = [j.name for j in chain if j.type not in (*_ACTUATED, "fixed")]
     if locked:
         warnings.warn(
-            f"joint(s) {', '.join(map(repr, locked))} on the chain to {ee_link!r} are locked at "
-            f"0: only revolute and continuous joints are actuated",
+            f"joint(s) {', '.join(map(repr, locked))} on the chain to {ee_link!r} are held "
+            f"fixed (--hold JOINT=VALUE sets where; --base-link LINK starts the arm below "
+            f"them): only revolute and continuous joints are actuated",
             ArmWarning,
             stacklevel=3,
         )
@@ -360,11 +397,13 @@ def _limits(j: yourdfpy.Joint) -> tuple[float, float, float, float]:
     """(lower, upper, effort, velocity) of a checked joint (:func:`check_actuated_limit`;
     effort 0 where it is not given); continuous joints get [-pi, pi] for placement."""
     lim = j.limit
+    if lim is None:  # a continuous joint published without a <limit>
+        return -math.pi, math.pi, 0.0, _DEFAULT_VELOCITY
     if j.type == "continuous" or lim.lower is None or lim.upper is None:
         lower, upper = -math.pi, math.pi
     else:
         lower, upper = float(lim.lower), float(lim.upper)
-    velocity = float(lim.velocity) if lim.velocity else 10.0
+    velocity = float(lim.velocity) if lim.velocity else _DEFAULT_VELOCITY
     return lower, upper, float(lim.effort or 0.0), velocity
 
 
@@ -416,9 +455,10 @@ def _detect_ee_link(robot: yourdfpy.URDF, root: str, path: str, grippers: bool =
                     )
                     for c in deepest
                 ]
+                picks = " or ".join(f"--base-link {link} --ee-link {end}" for end in ends)
                 raise LolgpsError(
-                    f"{path}: the description has {len(deepest)} arms, ending at "
-                    f"{', '.join(ends)}: name one with --ee-link"
+                    f"{path}: the description has {len(deepest)} arms below link {link!r}, "
+                    f"ending at {', '.join(ends)}: pick one with {picks}"
                 )
             passed += _below_arm_joint(robot, deepest[0])
             link = deepest[0]
@@ -455,29 +495,71 @@ def _below_arm_joint(robot: yourdfpy.URDF, link: str) -> bool:
     return _is_arm_joint(next(j for j in robot.robot.joints if j.child == link))
 
 
-def _lock_joints(tree: ET.Element, keep: set[str]) -> None:
-    """Make every moving joint not in ``keep`` a fixed one at its lock position (0, or the
-    nearest limit when 0 is outside them), folded into its ``<origin>``; drop the limits and
-    mimic tags of fixed joints, which mean nothing here."""
-    for joint in tree.findall("joint"):
-        kind = joint.get("type")
-        if kind != "fixed" and joint.get("name") not in keep:
-            _fold_lock_position(joint, kind or "")
+def _lock_joints(
+    tree: ET.Element, keep: set[str], hold: dict[str, float]
+) -> tuple[tuple[str, float], ...]:
+    """Make every moving joint not in ``keep`` a fixed one at its held position (``hold``, else
+    :func:`_rest_position`), folded into its ``<origin>``; drop the limits and mimic tags of
+    fixed joints, which mean nothing here.  Returns the held joints and their positions; a
+    ``hold`` naming no joint that can be held is a :class:`LolgpsError`."""
+    joints = {j.get("name", ""): j for j in tree.findall("joint")}
+    for name, value in hold.items():
+        moves = name in joints and joints[name].get("type") in _HELD
+        if name in keep or not moves:
+            movable = [n for n, j in joints.items() if n not in keep and j.get("type") in _HELD]
+            raise LolgpsError(
+                f"--hold {name}={value:g}: not a joint that is held; the held joints are: "
+                f"{', '.join(movable) or 'none'}"
+            )
+        _check_hold(joints[name], name, value)
+    held = []
+    for name, joint in joints.items():
+        kind = joint.get("type") or ""
+        if kind != "fixed" and name not in keep:
+            q = hold[name] if name in hold else _rest_position(joint)
+            if kind in _HELD:
+                _fold_lock_position(joint, kind, q)
+                held.append((name, q))
             joint.set("type", "fixed")
         if joint.get("type") == "fixed":
             for tag in ("limit", "mimic", "dynamics", "safety_controller", "calibration"):
                 for part in joint.findall(tag):
                     joint.remove(part)
+    return tuple(held)
 
 
-def _fold_lock_position(joint: ET.Element, kind: str) -> None:
-    """``origin <- origin * motion(q)`` for the lock position q of a revolute, continuous or
-    prismatic joint: a rotation about, or a translation along, its axis."""
+def _joint_range(joint: ET.Element) -> tuple[float, float] | None:
+    """A revolute or prismatic joint's ``(lower, upper)`` limits, None for a joint without
+    (a continuous one, or one whose ``<limit>`` gives no range)."""
     limit = joint.find("limit")
-    lower = float(limit.get("lower", 0.0)) if limit is not None else 0.0
-    upper = float(limit.get("upper", 0.0)) if limit is not None else 0.0
-    q = min(max(0.0, lower), upper) if kind != "continuous" and lower <= upper else 0.0
-    if q == 0.0 or kind not in ("revolute", "continuous", "prismatic"):
+    if joint.get("type") == "continuous" or limit is None:
+        return None
+    lower, upper = float(limit.get("lower", 0.0)), float(limit.get("upper", 0.0))
+    return (lower, upper) if lower <= upper else None
+
+
+def _rest_position(joint: ET.Element) -> float:
+    """Where a held joint stays unless told: 0, or the middle of its limits when 0 is outside
+    them."""
+    bounds = _joint_range(joint)
+    if bounds is None or bounds[0] <= 0.0 <= bounds[1]:
+        return 0.0
+    return (bounds[0] + bounds[1]) / 2
+
+
+def _check_hold(joint: ET.Element, name: str, value: float) -> None:
+    """A held position within the joint's limits (a continuous joint takes any)."""
+    bounds = _joint_range(joint)
+    if bounds is not None and not bounds[0] <= value <= bounds[1]:
+        raise LolgpsError(
+            f"--hold {name}={value:g}: outside the joint's limits [{bounds[0]:g}, {bounds[1]:g}]"
+        )
+
+
+def _fold_lock_position(joint: ET.Element, kind: str, q: float) -> None:
+    """``origin <- origin * motion(q)`` for the held position q of a revolute, continuous or
+    prismatic joint: a rotation about, or a translation along, its axis."""
+    if q == 0.0:
         return
     axis_el = joint.find("axis")
     axis = np.array(

@@ -111,19 +111,26 @@ def _check_limit_numbers(joint: ET.Element, kind: str, where: str) -> None:
 
 
 def check_actuated_limit(joint: ET.Element, where: str) -> bool:
-    """The ``<limit>`` of a joint the method actuates: velocity present (as pytorch-kinematics'
-    parser insists), ``effort >= 0``, ``velocity >= 0`` and, on a revolute joint,
-    ``lower < upper``.  Returns whether the effort is unknown: 0 or absent (ROS-Industrial
-    publishes 0 as a placeholder; the loader derives a limit, :mod:`.effort`)."""
+    """The ``<limit>`` of a joint the method actuates, as ROS's URDF parser reads it: a revolute
+    joint needs one, a continuous joint may go without (then its effort is unknown); a given
+    ``<limit>`` has a velocity (ROS's parser and pytorch-kinematics' insist), ``effort >= 0``,
+    ``velocity >= 0`` and, on a revolute joint, ``lower < upper``.  Returns whether the effort
+    is unknown: 0 or absent (ROS-Industrial publishes 0 as a placeholder; the loader derives a
+    limit, :mod:`.effort`)."""
     kind = joint.get("type")
     limit = _optional_child(joint, "limit", where)
     if limit is None:
-        if kind == "revolute":
-            raise LolgpsError(
-                f"{where}: a revolute joint needs a <limit lower=... upper=... effort=... "
-                f"velocity=...>; add one"
-            )
-        raise LolgpsError(f"{where}: <limit> missing; add <limit effort=... velocity=...>")
+        if kind == "continuous":
+            return True
+        raise LolgpsError(
+            f"{where}: a revolute joint needs a <limit lower=... upper=... effort=... "
+            f"velocity=...>; add one"
+        )
+    if limit.get("velocity") is None:
+        raise LolgpsError(
+            f'{where}: <limit> has no velocity attribute (ROS requires one too); add velocity="..."'
+            f" with the joint's top speed (rad/s)"
+        )
     effort = _number(limit, "effort", where) or 0.0
     velocity = _required_numbers(limit, "velocity", where, 1)[0]
     lower, upper = (_number(limit, attr, where) for attr in ("lower", "upper"))

@@ -27,7 +27,7 @@ import numpy as np
 
 from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.arm import ArmSpec
-from lolgps_torch.sim.pybullet_quiet import pb
+from lolgps_torch.sim.pybullet_quiet import pb, silenced
 from lolgps_torch.state import StateLayout
 
 
@@ -124,7 +124,8 @@ class PegWorld:
             fh.write(arm.urdf_text)
         try:
             flags = pb.URDF_USE_INERTIA_FROM_FILE | (0 if meshes else pb.URDF_IGNORE_VISUAL_SHAPES)
-            self.body = pb.loadURDF(fh.name, useFixedBase=True, flags=flags, physicsClientId=c)
+            with silenced():  # PyBullet's own warnings; the loader has said what matters
+                self.body = pb.loadURDF(fh.name, useFixedBase=True, flags=flags, physicsClientId=c)
         except pb.error as exc:
             raise LolgpsError(f"PyBullet could not load {arm.source_path}: {exc}") from None
         finally:

@@ -24,9 +24,8 @@ from lolgps_torch.evaluation.areas import AreaConfig, sample_area_positions
 from lolgps_torch.evaluation.jobs import run_jobs
 from lolgps_torch.evaluation.worker import Job, PolicyState
 from lolgps_torch.policy.net import GaussianPolicy
-from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.state import StateLayout
-from lolgps_torch.task import TaskConfig
+from lolgps_torch.task import TaskConfig, load_task_arm
 
 
 def bench_eval(
@@ -48,7 +47,7 @@ def bench_eval(
     sampled = sample_area_positions(replace(areas, positions_per_area=per_area))
     positions = [(p[0], p[1]) for p in sampled.reshape(-1, 2).tolist()][:n_positions]
     if checkpoint is None:
-        layout = StateLayout(load_arm(task.urdf, task.ee_link, task.peg).dof)
+        layout = StateLayout(load_task_arm(task).dof)
         policy = PolicyState.of("untrained", GaussianPolicy(layout.dX, layout.dU))
     else:
         policy = PolicyState.of(checkpoint, load_policy(checkpoint))

@@ -22,10 +22,10 @@ from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.run import read_run
-from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import follow, generic_rank, reach, vertical_peg_targets
 from lolgps_torch.state import StateLayout
+from lolgps_torch.task import load_task_arm
 
 
 def table(path: str) -> list[str]:
@@ -33,7 +33,7 @@ def table(path: str) -> list[str]:
     folder = RunFolder(path)
     info = read_run(folder)
     task = info.task
-    arm = load_arm(task.urdf, task.ee_link, task.peg, task.package_path)
+    arm = load_task_arm(task)
     kin = PegKinematics(arm, "cpu")
     lay = StateLayout(arm.dof)
     replay = ReplayBuffer(folder.replay_path)

@@ -15,10 +15,9 @@ import warnings
 from lolgps_torch.cli import run
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
-from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import PlacementConfig, place_task
-from lolgps_torch.task import TaskConfig
+from lolgps_torch.task import TaskConfig, load_task_arm
 
 
 def main() -> None:
@@ -32,7 +31,7 @@ def main() -> None:
         task = TaskConfig(urdf=urdf)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            arm = load_arm(urdf, task.ee_link, task.peg, task.package_path)
+            arm = load_task_arm(task)
         kinematics = PegKinematics(arm, "cpu")
         for seed in args.seeds:
             conditions, _ = default_training_stream(AreaConfig(), seed)
