@@ -144,7 +144,7 @@ TASK_FLAGS = ConfigFlags(
         "descent-height": ("cost.descent_height",),
         "descent-steps": ("cost.descent_steps",),
     },
-    skip=("urdf",),
+    skip=("urdf", "scale"),  # run_stream.py's --scale takes auto too
 )
 
 
@@ -163,6 +163,15 @@ def task_config(args: argparse.Namespace) -> TaskConfig:
         raise LolgpsError("--descent-height and --descent-steps must be >= 0")
     config: TaskConfig = TASK_FLAGS.build(args)
     return dataclasses.replace(config, urdf=args.urdf)
+
+
+def scale_factor(text: str) -> float:
+    """The FACTOR of ``--scale FACTOR``: a number in (0, 1] (:class:`TaskConfig` checks the
+    range); anything else is a :class:`LolgpsError`."""
+    try:
+        return float(text)
+    except ValueError:
+        raise LolgpsError(f"--scale {text}: expected auto or a factor in (0, 1]") from None
 
 
 WORKERS_VARIABLE = "LOLGPS_WORKERS"

@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -19,7 +19,14 @@ from lolgps_torch.cost.l12 import CostConfig, PegCost
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import ArmSpec, PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
-from lolgps_torch.robot.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
+from lolgps_torch.robot.placement import (
+    PlacementConfig,
+    pinned,
+    place_task,
+    reach,
+    solve_ik,
+    vertical_peg_targets,
+)
 from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.pybullet_quiet import pb
@@ -39,13 +46,17 @@ class TaskConfig:
     :param hold: JOINT=VALUE pairs: where held joints stay (rad or m; default 0, or the middle
         of the joint's limits when 0 is outside them).
     :param package_path: folders searched for the ROS packages that ``package://`` mesh URIs
-        name, after the URDF's ancestors and ROS_PACKAGE_PATH."""
+        name, after the URDF's ancestors and ROS_PACKAGE_PATH.
+    :param scale: the factor the stream's geometry is scaled by to fit the arm (hole offsets,
+        test areas, the start height and an attached peg's length; :func:`scaled`); the hole's
+        depth and clearances stay as they are."""
 
     urdf: str
     ee_link: str | None = None
     base_link: str | None = None
     hold: tuple[str, ...] = ()
     package_path: tuple[str, ...] = ()
+    scale: float = 1.0
     peg: PegConfig = field(default_factory=PegConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
     placement: PlacementConfig = field(default_factory=PlacementConfig)
@@ -57,6 +68,8 @@ class TaskConfig:
         if self.base_link is not None and not self.base_link:
             raise LolgpsError("--base-link must name a link")
         self.held()  # checks the pairs
+        if not (math.isfinite(self.scale) and 0.0 < self.scale <= 1.0):
+            raise LolgpsError(f"--scale must be in (0, 1], got {self.scale}")
         for folder in self.package_path:
             if not os.path.isdir(folder):
                 raise LolgpsError(f"--package-path {folder}: not a folder")
@@ -86,6 +99,60 @@ class TaskConfig:
                 )
             held[name] = value
         return held
+
+
+# Reach (m) of the arm the default geometry is made for (robots/kuka_peg.urdf, from the shoulder)
+REFERENCE_REACH = 1.15
+_SHRINK = 0.8  # each further try of --scale auto
+_TRIES = 4
+
+
+def scaled(config: TaskConfig, factor: float) -> TaskConfig:
+    """``config`` with the stream's geometry scaled by ``factor`` (relative to its own scale):
+    the hole positions the placement reaches, the start pose's offset from the hole and the
+    length of the peg attached to arms that carry none (a URDF's own peg stays)."""
+    placement = replace(
+        config.placement,
+        positions=tuple((dx * factor, dy * factor) for dx, dy in config.placement.positions),
+        start_offset=tuple(v * factor for v in config.placement.start_offset),  # type: ignore[arg-type]
+    )
+    peg = replace(config.peg, length=config.peg.length * factor)
+    return replace(config, scale=config.scale * factor, placement=placement, peg=peg)
+
+
+def fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
+    """``config`` as it is if the placement fits its geometry (the stream's positions in
+    ``config.placement``) to the arm, else scaled (:func:`scaled`) to fit: by the arm's reach
+    over :data:`REFERENCE_REACH`, then by :data:`_SHRINK` at each further try.  Returns the
+    config, its placement pinned (the hole and start pose found), and a line saying what was
+    scaled ("" when nothing was); a :class:`LolgpsError` when no try fits (the last one's)."""
+    arm = load_task_arm(config)
+    kinematics = PegKinematics(arm)
+    try:
+        return _pinned(config, arm, kinematics), ""
+    except LolgpsError:
+        pass
+    radius = reach(arm, kinematics)[1]
+    factor = min(1.0, radius / REFERENCE_REACH)
+    for attempt in range(_TRIES):
+        candidate = scaled(config, factor * _SHRINK**attempt)
+        arm = load_task_arm(candidate)
+        try:
+            placed = _pinned(candidate, arm, PegKinematics(arm))
+            break
+        except LolgpsError:
+            if attempt == _TRIES - 1:
+                raise
+    return placed, (
+        f"the default geometry does not fit this arm's reach ({radius:.2f} m): hole offsets, "
+        f"test areas, start height and attached peg scaled by {placed.scale:.3g} (--scale)"
+    )
+
+
+def _pinned(config: TaskConfig, arm: ArmSpec, kinematics: PegKinematics) -> TaskConfig:
+    """``config`` with its placement pinned where :func:`place_task` puts the hole."""
+    geometry = place_task(arm, kinematics, config.placement, config.world.depth)
+    return replace(config, placement=pinned(config.placement, geometry))
 
 
 def load_task_arm(config: TaskConfig) -> ArmSpec:

@@ -32,6 +32,7 @@ from lolgps_torch.cli import (
     check_device,
     read_offsets,
     run,
+    scale_factor,
     task_config,
     workers,
 )
@@ -49,7 +50,7 @@ from lolgps_torch.evaluation.square import SquareConfig, square_stream
 from lolgps_torch.lolgps import METHODS, StreamConfig, make_learner, method_config
 from lolgps_torch.progress import Bar
 from lolgps_torch.robot.placement import pinned
-from lolgps_torch.task import PegTask, TaskConfig
+from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled
 
 STREAM_FLAGS = ConfigFlags(
     StreamConfig(),
@@ -73,6 +74,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     add_task_arguments(parser, default_urdf="robots/kuka_peg.urdf")
+    parser.add_argument(
+        "--scale",
+        default="auto",
+        help="scale the stream's geometry (hole offsets, test areas, start height, attached "
+        "peg) by FACTOR in (0, 1]; auto: by the arm's reach, only where the default geometry "
+        "does not fit (default auto)",
+    )
     parser.add_argument(
         "--stream",
         choices=("paper", "square"),
@@ -163,9 +171,20 @@ def plan_run(args: argparse.Namespace) -> Plan:
         conditions, stages = default_training_stream(AreaConfig(), args.seed)
     task = replace(task, placement=replace(task.placement, positions=tuple(conditions)))
     folder = RunFolder(args.out or os.path.join("runs", f"{args.method}-seed{args.seed}"))
-    if args.resume and folder.has_config():  # the hole and start pose the run was placed at
-        saved = folder.task_config(folder.read_config()["task"]).placement
-        task = replace(task, placement=replace(task.placement, mouth=saved.mouth, q0=saved.q0))
+    if args.resume and folder.has_config():  # the scale, hole and start pose it was placed at
+        saved = folder.task_config(folder.read_config()["task"])
+        task = scaled(task, saved.scale)
+        task = replace(
+            task,
+            placement=replace(task.placement, mouth=saved.placement.mouth, q0=saved.placement.q0),
+        )
+    elif args.scale != "auto":
+        task = scaled(task, scale_factor(args.scale))
+    else:
+        task, note = fit_scale(task)
+        if note:
+            print(note)
+    conditions = list(task.placement.positions)
     urdf_text = portable_urdf(args.urdf, task.package_path)
     config = as_stored(
         {

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -233,14 +233,15 @@ def evaluate_run(
     """Evaluate every stage's checkpoint of ``run_dir`` and write its ``eval.json``.
 
     :param workers: processes to spread the rollouts over (results do not depend on it).
-    :param areas: test areas (default :class:`AreaConfig`); exclusive with ``positions``.
+    :param areas: test areas (default :class:`AreaConfig`), scaled by the run's geometry scale
+        (``TaskConfig.scale``) as its hole offsets were; exclusive with ``positions``.
     :param positions: explicit hole offsets ``(dx, dy)`` (m), each its own group.
     :param scratch: the from-scratch baselines for forward transfer: ``"auto"`` learns every
         condition alone here (cached in the run's ``scratch.json``), or a run folder whose
         conditions at the same offsets serve (e.g. a naive run).
     :param batch_size: rollouts per batch (worlds per worker).
-    :param square: the 2-D stream's test set instead of areas or positions: its geometry and
-        the seed of its positions.
+    :param square: the 2-D stream's test set instead of areas or positions: its geometry
+        (its side scaled as ``areas`` are) and the seed of its positions.
     :param ray: run the rollouts on Ray instead of processes: ``"local"`` starts a local
         instance of ``workers`` CPUs, anything else is a cluster address (e.g. ``auto``).
     :returns: the dict written to ``eval.json``.
@@ -253,6 +254,13 @@ def evaluate_run(
         areas = AreaConfig()
     folder = RunFolder(run_dir)
     info = read_run(folder)
+    factor = info.task.scale
+    areas = (
+        replace(areas, spacing=areas.spacing * factor, radius=areas.radius * factor)
+        if areas
+        else None
+    )
+    square = (replace(square[0], side=square[0].side * factor), square[1]) if square else None
     policies = stage_policies(folder, info)
     if square is not None:
         groups = _square_group(*square, info)

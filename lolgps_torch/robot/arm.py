@@ -378,8 +378,8 @@ def _actuated_joints(chain: list[yourdfpy.Joint], ee_link: str) -> list[yourdfpy
     actuated = [j for j in chain if _is_arm_joint(j)]
     if not actuated:
         raise LolgpsError(
-            f"end-effector link {ee_link!r} is not downstream of any actuated joint; "
-            f"name another with --ee-link"
+            f"end-effector link {ee_link!r} is not downstream of any actuated joint below the "
+            f"base link; name another with --ee-link (or --base-link)"
         )
     locked = [j.name for j in chain if j.type not in (*_ACTUATED, "fixed")]
     if locked:
