@@ -11,7 +11,10 @@ Placement.  With R the arm's reach from its shoulder (:func:`reach`), the nomina
 is tried at ``shoulder + (rho R cos a, rho R sin a, -eta R)`` for a grid of fractions
 ``(rho, eta)`` about ``(reach_fraction, mouth_below_shoulder)`` and azimuths a about the
 base's +x, nearest first (:func:`_candidates`): first as it is, then shifted by ``-c`` with
-``c`` the centre of the stream's positions (so that they straddle the spot).  The first mouth
+``c`` the centre of the stream's positions (so that they straddle the spot).  Where none
+fits, heights further from the preferred one follow (``eta`` up to 0.9 R below the shoulder
+and 0.3 R above it: arms that hang from a torso, or reach up to a table), those whose targets
+lie nearest the sampled down-pointing tips first.  The first mouth
 at which the start pose and every position's hole floor are reachable with the peg pointing
 down, inside the joint limits' margin, *and* every floor is reached from the start pose by
 following the peg points along the straight line between them (:func:`follow`), never nearer
@@ -38,6 +41,9 @@ Position = tuple[float, float]
 # (rho, eta) offsets from the preferred fractions, and azimuths (degrees) about the base's +x,
 # tried by the placement
 _STEPS = (0.0, -0.1, 0.1, -0.2, 0.2, 0.3)
+# further height offsets (eta), tried once no spot of _STEPS fits: arms that hang from their
+# shoulder (an arm on a torso) or reach up to the table
+_FAR_HEIGHTS = (0.45, 0.6, 0.75, -0.3, -0.45)
 _AZIMUTHS = (0, 45, -45, 90, -90, 135, -135, 180)
 _START_SCALES = (1.0, 0.5)
 _SAMPLES = 16384  # random poses for the down-pointing workspace
@@ -310,7 +316,10 @@ def place_task(
     positions = torch.tensor(config.positions or ((0.0, 0.0),), dtype=torch.float64)
     positions = positions.to(kin.device)
     floor = torch.nn.functional.pad(positions, (0, 1), value=-depth)  # [M, 3] below the mouth
-    mouths, start_offsets = _candidates(shoulder, radius, positions, config)  # [C, 3] each
+    near_mouths, near_starts = _candidates(shoulder, radius, positions, config, _STEPS)
+    far_mouths, far_starts = _candidates(shoulder, radius, positions, config, _FAR_HEIGHTS)
+    mouths = torch.cat([near_mouths, far_mouths])  # [C, 3]
+    start_offsets = torch.cat([near_starts, far_starts])
     tips = mouths[:, None] + floor  # [C, M, 3]
     if config.q0 is None:  # the start tip first
         tips = torch.cat([(mouths + start_offsets)[:, None], tips], dim=1)  # [C, K, 3]
@@ -319,11 +328,15 @@ def place_task(
     rank = generic_rank(kin, cloud_q[:_RANK_POSES])
     gap = torch.cdist(tips.reshape(-1, 3), cloud_tip).min(dim=-1)  # nearest sampled tip
     score = gap.values.reshape(tips.shape[:2]).max(dim=-1).values  # [C]
-    near = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
+    screened = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
+    near = [c for c in screened if c < len(near_mouths)]
+    far = sorted((c for c in screened if c >= len(near_mouths)), key=lambda c: float(score[c]))
     reached, holes_only = 0, False  # most targets reached; all holes reached but not the start
     stuck: tuple[list[float], float, float] | None = None  # reachable, not from q0: the worst
-    chunks = [[0]] + [near[i : i + _VERIFIED] for i in range(0, len(near), _VERIFIED)]
-    for chosen in chunks[: 1 + _CHUNKS]:  # the preferred spot alone first, then in order
+    chunks = [[0]]  # the preferred spot alone first, then the near ones in order, then the far
+    for group in (near, far):
+        chunks += [group[i : i + _VERIFIED] for i in range(0, len(group), _VERIFIED)][:_CHUNKS]
+    for chosen in chunks:
         targets = vertical_peg_targets(tips[chosen].reshape(-1, 3), -arm.point_offsets[1][2])
         seeds = cloud_q[gap.indices.reshape(tips.shape[:2])[chosen].reshape(-1)]
         q, err = solve_ik_batch(
@@ -433,11 +446,16 @@ def _cannot_point_down(arm: ArmSpec, radius: float) -> str:
 
 
 def _candidates(
-    shoulder: Tensor, radius: float, positions: Tensor, config: PlacementConfig
+    shoulder: Tensor,
+    radius: float,
+    positions: Tensor,
+    config: PlacementConfig,
+    heights: tuple[float, ...],
 ) -> tuple[Tensor, Tensor]:
     """Nominal mouths ``[C, 3]`` to try, preferred first, and the start tip's offset from each
     ``[C, 3]``.  A spot is ``shoulder + (rho R cos(a), rho R sin(a), -eta R)`` for azimuths a
-    about the base's +x and fractions (rho, eta) about the configured ones; each is tried as
+    about the base's +x and fractions (rho, eta) about the configured ones (eta offset by
+    ``heights``); each is tried as
     it is, then shifted so that the positions' centre lies on it.  The start offset is turned
     by a (so that "back" points towards the base), and scaled by f = 1, then 0.5 for arms too
     short to lift the peg that high; the nearer (a, rho, eta, f) to (0, config, 1), the
@@ -449,7 +467,7 @@ def _candidates(
         (abs(a) / 45 + abs(r) / 0.1 + abs(e) / 0.1 + (1 - f) / 0.25, a, r, e, f)
         for a in _AZIMUTHS
         for r in _STEPS
-        for e in _STEPS
+        for e in heights
         for f in _START_SCALES
         if 0.1 <= config.reach_fraction + r <= 0.95
     )
