@@ -215,10 +215,17 @@ def fk_gap(task: Any, poses: int = 5) -> float:
     return worst
 
 
-def check_published_arm(urdf: str, dof: int, ee_link: str | None = None) -> None:
+def check_published_arm(
+    urdf: str,
+    dof: int,
+    ee_link: str | None = None,
+    chain: tuple[str | None, str | None] = (None, None),
+) -> None:
     """A published description as published: ``dof`` actuated joints (ending at ``ee_link``,
-    if given), kinematics agreeing with PyBullet's at random poses, every position of the
-    paper stream reachable from the placed hole (one batched IK; test_world checks
+    if given; on the chain the flags ``--base-link`` and ``--ee-link`` pick, ``chain``, where
+    given), kinematics agreeing with PyBullet's at random poses,
+    every position of the paper stream (scaled to the arm where it does not fit, as
+    ``--scale auto`` does) reachable from the placed hole (one batched IK; test_world checks
     ``PegTask.check_reachable`` itself), and one short iteration of the local learner."""
     import warnings
 
@@ -236,14 +243,21 @@ def check_published_arm(urdf: str, dof: int, ee_link: str | None = None) -> None
     )
     from lolgps_torch.robot.validate import ArmWarning
     from lolgps_torch.sim.world import WorldConfig
-    from lolgps_torch.task import PegTask, TaskConfig
+    from lolgps_torch.task import PegTask, TaskConfig, fit_scale
 
-    stream = tuple(default_training_stream(AreaConfig(), 0)[0])
-    placement = PlacementConfig(positions=stream)
-    config = TaskConfig(urdf=urdf, world=WorldConfig(T=10), placement=placement)
+    placement = PlacementConfig(positions=tuple(default_training_stream(AreaConfig(), 0)[0]))
+    config = TaskConfig(
+        urdf=urdf,
+        base_link=chain[0],
+        ee_link=chain[1],
+        world=WorldConfig(T=10),
+        placement=placement,
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ArmWarning)
+        config, _ = fit_scale(config)
         task = PegTask(config, n_worlds=2)
+    stream = config.placement.positions
     try:
         assert task.arm.dof == dof
         assert ee_link is None or task.arm.ee_link == ee_link

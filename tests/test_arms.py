@@ -4,6 +4,7 @@ PyBullet, places the default stream and runs an iteration."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -28,7 +29,7 @@ from lolgps_torch.robot.placement import PlacementConfig
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
-from lolgps_torch.task import PegTask, TaskConfig
+from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled, task_config_from_dict
 
 DATA = pybullet_data.getDataPath()
 XARM = os.path.join(DATA, "xarm/xarm6_robot.urdf")
@@ -45,6 +46,16 @@ CORPUS = {
     "rtb-wx250s": (str(TROSSEN / "wx250s.urdf"), 6),
     "rtb-wx200": (str(TROSSEN / "wx200.urdf"), 5),
     "rtb-px150": (str(TROSSEN / "px150.urdf"), 5),
+}
+FETCH = str(ARMS / "mani_skill/fetch/fetch.urdf")
+PR2 = str(ARMS / "example-robot-data/robots/pr2_description/urdf/pr2.urdf")
+SO100 = str(ARMS / "mani_skill/so100/so100.urdf")
+# published arms on a mobile base, on a torso, and small: name -> (URDF, degrees of freedom,
+# the --base-link and --ee-link flags that pick the arm)
+MOUNTED: dict[str, tuple[str, int, tuple[str | None, str | None]]] = {
+    "maniskill-fetch": (FETCH, 7, ("torso_lift_link", None)),
+    "erd-pr2-left": (PR2, 7, ("torso_lift_link", "l_wrist_roll_link")),
+    "maniskill-so100": (SO100, 5, (None, None)),
 }
 # published descriptions that cannot do the task, and the flag or element their error names
 REFUSED = {
@@ -210,6 +221,14 @@ def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
     check_published_arm(urdf, dof)
 
 
+@pytest.mark.parametrize("name", sorted(MOUNTED))
+def test_arm_on_a_base_or_torso_or_small_loads_places_and_iterates(name: str) -> None:
+    """As the published arms above, with the arm picked by --base-link/--ee-link, the joints
+    above and off it held, and the stream scaled to a small arm's reach."""
+    urdf, dof, chain = MOUNTED[name]
+    check_published_arm(urdf, dof, chain=chain)
+
+
 @pytest.mark.parametrize("name", sorted(REFUSED))
 def test_published_arm_that_cannot_do_the_task_gets_one_error_line(
     name: str, tmp_path: Path, run_script: ScriptRunner
@@ -318,7 +337,8 @@ def test_fixed_joint_limits_are_ignored(tmp_path: Path) -> None:
 
 def test_off_chain_and_mimic_joints_are_locked_at_their_limit(tmp_path: Path) -> None:
     """A finger (prismatic, limits [0.01, 0.04]) and its mimic twin on the last link: neither
-    is actuated; both become fixed at 0.01, folded into their origins."""
+    is actuated; both become fixed at the middle of their limits (0 is outside them), 0.025,
+    folded into their origins."""
     finger = (
         '<link name="f{i}"><inertial><mass value="0.01"/><inertia ixx="1e-6" iyy="1e-6" '
         'izz="1e-6" ixy="0" ixz="0" iyz="0"/></inertial></link>'
@@ -334,7 +354,8 @@ def test_off_chain_and_mimic_joints_are_locked_at_their_limit(tmp_path: Path) ->
     for name in ("finger_1", "finger_2"):
         origin = joints[name].find("origin")
         assert joints[name].get("type") == "fixed" and origin is not None
-        assert np.allclose([float(v) for v in origin.get("xyz", "").split()], [0, 0.01, 0.05])
+        assert np.allclose([float(v) for v in origin.get("xyz", "").split()], [0, 0.025, 0.05])
+    assert arm.held == (("finger_1", 0.025), ("finger_2", 0.025))
 
 
 def test_a_published_arm_with_a_gripper_ends_before_the_gripper() -> None:
@@ -358,7 +379,11 @@ def test_two_equal_arms_need_an_end_effector(tmp_path: Path) -> None:
         body += JOINT.format(n=f"{side}j1", t="revolute", p="base", c=f"{side}1", z=0.1)
         body += JOINT.format(n=f"{side}j2", t="revolute", p=f"{side}1", c=f"{side}2", z=0.3)
     path = _write(tmp_path, "two.urdf", f'<robot name="two">{body}</robot>')
-    with pytest.raises(LolgpsError, match="2 arms, ending at a2, b2: name one with --ee-link"):
+    with pytest.raises(
+        LolgpsError,
+        match="2 arms below link 'base', ending at a2, b2: pick one with --base-link base "
+        "--ee-link a2 or --base-link base --ee-link b2",
+    ):
         load_arm(path)
     assert load_arm(path, ee_link="b2").joint_names == ("bj1", "bj2")
 
@@ -384,15 +409,129 @@ def test_task_configs_check_their_fields(make: object, flag: str) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(CORPUS))
+@pytest.mark.parametrize("name", sorted(CORPUS) + sorted(MOUNTED))
 def test_published_arm_learns_the_default_stream(name: str, tmp_path: Path) -> None:
-    """The main job with only ``--urdf``: the global policy succeeds at >= 7 of the 8 training
-    positions and every local controller ends within the success threshold. Minutes each."""
+    """The main job with only ``--urdf`` (and the flags that pick an arm on a base or torso):
+    the global policy succeeds at >= 7 of the 8 training positions and every local controller
+    ends within the success threshold. Minutes each."""
     out = tmp_path / "run"
-    cmd = [sys.executable, "scripts/run_stream.py", "--urdf", CORPUS[name][0], "--out", str(out)]
+    urdf, _, (base, ee) = MOUNTED[name] if name in MOUNTED else (CORPUS[name][0], 0, (None, None))
+    picks = [*(["--base-link", base] if base else []), *(["--ee-link", ee] if ee else [])]
+    cmd = [sys.executable, "scripts/run_stream.py", "--urdf", urdf, *picks, "--out", str(out)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     entries = json.loads((out / "summary.json").read_text())["conditions"]
     assert len(entries) == 8
     assert max(e["local_final_distance"] for e in entries) <= WorldConfig().success_threshold
     assert sum(bool(e["policy_success_end"]) for e in entries) >= 7
+
+
+def test_a_continuous_joint_needs_no_limit_and_a_mobile_base_is_part_of_the_chain() -> None:
+    """ManiSkill's Fetch: the base's rotation is a continuous joint without <limit> (as ROS
+    allows); from the root it is the arm's first joint, its effort derived; the base's
+    prismatic joints are held."""
+    with pytest.warns(ArmWarning, match="root_z_rotation_joint"):
+        arm = load_arm(FETCH)
+    assert arm.joint_names[0] == "root_z_rotation_joint" and arm.dof == 8
+    assert arm.effort[0] > 0 and arm.base_link == "root"
+    assert ("root_x_axis_joint", 0.0) in arm.held
+
+
+def test_base_link_holds_the_joints_above_and_off_the_chain() -> None:
+    """--base-link torso_lift_link: the arm's 7 joints; the base, torso, head and fingers held,
+    each where --hold says or at 0; the torso lift's height is folded into its origin."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        low = load_arm(FETCH, base_link="torso_lift_link")
+        high = load_arm(FETCH, base_link="torso_lift_link", hold={"torso_lift_joint": 0.3})
+    assert low.joint_names[0] == "shoulder_pan_joint" and low.dof == 7
+    held = dict(high.held)
+    assert held["torso_lift_joint"] == 0.3 and held["head_pan_joint"] == 0.0
+    assert {"root_z_rotation_joint", "l_gripper_finger_joint"} <= set(held)
+    lifts = [
+        next(j for j in ET.fromstring(a.urdf_text).findall("joint") if j.get("name") == name)
+        for a, name in ((low, "torso_lift_joint"), (high, "torso_lift_joint"))
+    ]
+    heights = [float(j.find("origin").get("xyz").split()[2]) for j in lifts]  # type: ignore[union-attr]
+    assert heights[1] - heights[0] == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"base_link": "nope"}, "unknown base link 'nope'"),
+        (
+            {"base_link": "head_pan_link", "ee_link": "wrist_roll_link"},
+            "base link .head_pan_link. is not on the chain",
+        ),
+        ({"hold": {"shoulder_pan_joint": 0.1}}, "--hold shoulder_pan_joint=0.1: not a joint"),
+        ({"hold": {"nope": 0.1}}, "--hold nope=0.1: not a joint that is held"),
+        ({"hold": {"torso_lift_joint": 1.0}}, "outside the joint's limits"),
+    ],
+)
+def test_bad_base_link_or_hold_is_one_error(kwargs: dict, message: str) -> None:
+    with warnings.catch_warnings(), pytest.raises(LolgpsError, match=message):
+        warnings.simplefilter("ignore", ArmWarning)
+        load_arm(FETCH, **{"base_link": "torso_lift_link", **kwargs})
+
+
+def test_several_arms_name_the_flags_that_pick_one() -> None:
+    with pytest.raises(LolgpsError, match="--base-link torso_lift_link --ee-link l_wrist_roll"):
+        load_arm(PR2)
+
+
+def test_a_limit_without_velocity_says_what_to_add(tmp_path: Path) -> None:
+    path = _kuka_variant(tmp_path, ' velocity="1.4835298641951802"', "")
+    with pytest.raises(LolgpsError, match='has no velocity attribute .* add velocity="..."'):
+        load_arm(path)
+
+
+def test_task_config_records_the_arm_picked_and_the_scale() -> None:
+    """config.json's task (``asdict``) reads back with the base link, the held joints and the
+    scale, so that evaluate.py and render.py rebuild the same arm and test areas."""
+    config = TaskConfig(urdf="x", base_link="b", hold=("j=0.5",), scale=0.5)
+    assert task_config_from_dict(dataclasses.asdict(config)) == config
+    assert config.held() == {"j": 0.5}
+    for bad in (("j",), ("j=x",), ("j=1", "j=2"), ("=1",)):
+        with pytest.raises(LolgpsError, match="--hold"):
+            TaskConfig(urdf="x", hold=bad)
+    with pytest.raises(LolgpsError, match="--scale"):
+        TaskConfig(urdf="x", scale=0.0)
+
+
+def test_scaled_geometry_and_an_arm_that_fits_is_left_as_it_is() -> None:
+    """``scaled`` shrinks the positions, the start offset and the attached peg; the KUKA fits
+    the default stream, so ``fit_scale`` leaves it at scale 1 and says nothing."""
+    base = TaskConfig(
+        urdf="robots/kuka_peg.urdf", placement=PlacementConfig(positions=PAPER_STREAM)
+    )
+    half = scaled(base, 0.5)
+    assert half.scale == 0.5 and half.peg.length == pytest.approx(0.1)
+    assert half.placement.positions[0] == pytest.approx((-0.01, -0.01))
+    assert half.placement.start_offset == pytest.approx((-0.05, 0.0, 0.1))
+    placed, note = fit_scale(base)
+    assert note == "" and placed.scale == 1.0 and placed.placement.mouth is not None
+
+
+def test_inspect_lists_held_joints_and_pybullet_stays_quiet(run_script: ScriptRunner) -> None:
+    """The held joints are listed; PyBullet's own warnings (Fetch's fingers' inertia) do not
+    reach the terminal, only the loader's one line."""
+    result = run_script(
+        INSPECT, "--urdf", FETCH, "--base-link", "torso_lift_link", "--hold", "torso_lift_joint=0.2"
+    )
+    assert result.code == 0, result.err
+    assert "torso_lift_joint" in result.out and "base link     torso_lift_link" in result.out
+    assert "b3Warning" not in result.out + result.err
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [("--base-link", "nope"), ("--hold", "x"), ("--hold", "x=1"), ("--scale", "big")],
+)
+def test_bad_arm_flags_are_one_error_line_before_any_work(
+    flags: tuple[str, ...], tmp_path: Path, run_script: ScriptRunner
+) -> None:
+    result = run_script("scripts/run_stream.py", *flags, "--out", str(tmp_path / "run"))
+    errors = [line for line in result.err.splitlines() if line.startswith("error:")]
+    assert result.code == 2 and len(errors) == 1, result.err
+    assert not (tmp_path / "run").exists()
