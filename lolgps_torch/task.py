@@ -17,7 +17,7 @@ from torch import Tensor
 from lolgps_torch.configs import from_dict
 from lolgps_torch.cost.l12 import CostConfig, PegCost
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import ArmSpec, PegConfig, load_arm
+from lolgps_torch.robot.arm import PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import (
     PlacementConfig,
@@ -27,6 +27,7 @@ from lolgps_torch.robot.placement import (
     solve_ik,
     vertical_peg_targets,
 )
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.pybullet_quiet import pb

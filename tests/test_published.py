@@ -23,8 +23,9 @@ from conftest import ScriptRun, check_published_arm, fk_gap
 from lolgps_torch.data.run_folder import portable_urdf
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
-from lolgps_torch.robot.arm import ArmSpec, load_arm
+from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.effort import derived_effort
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig

@@ -13,8 +13,9 @@ import pybullet_data
 import pytest
 import torch
 
-from lolgps_torch.robot.arm import ArmSpec, load_arm
+from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.rigid_body import ArmDynamics
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig

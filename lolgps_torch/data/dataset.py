@@ -26,9 +26,9 @@ from lolgps_torch.data.replay import ConditionRecord, ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder, read_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.progress import progress
-from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import place_task
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import TaskConfig, load_task_arm
 

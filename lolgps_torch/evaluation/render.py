@@ -35,7 +35,7 @@ from lolgps_torch.data.run_folder import atomic_write
 from lolgps_torch.errors import LolgpsError, check_fields
 from lolgps_torch.lolgps.run import LoadedRun
 from lolgps_torch.policy.actor import policy_actor
-from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.sim.world import PegWorld, WorldConfig

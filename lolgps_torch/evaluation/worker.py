@@ -24,7 +24,7 @@ import torch
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.net import GaussianPolicy
-from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.rollout import Sampler
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout

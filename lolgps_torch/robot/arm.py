@@ -32,9 +32,13 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+import torch
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.robot.effort import EFFORT_MARGIN, derived_effort
 from lolgps_torch.robot.packages import resolve_mesh
+from lolgps_torch.robot.rigid_body import ArmDynamics
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import (
     ArmWarning,
     check_actuated_limit,
@@ -103,55 +107,6 @@ class PegConfig:
             raise LolgpsError(
                 f"--peg-axis must be auto or one of {', '.join(_AXIS_RPY)}, got {self.axis!r}"
             )
-
-
-@dataclass(frozen=True)
-class ArmSpec:
-    """A URDF arm as the method sees it.
-
-    :param urdf_text: URDF text used by both simulator and kinematics (peg attached if needed,
-        relative mesh paths made absolute).
-    :param source_path: the URDF file given by the user.
-    :param source_sha256: SHA-256 of that file's bytes.
-    :param root_link: the URDF's root link (the simulator's base, fixed in the world).
-    :param ee_link: the end-effector link (the peg is fixed to it).
-    :param point_link: the point frame; its origin is the peg tip and +z runs along the peg.
-    :param peg_link: the link whose collision shape is the peg (the only part touching the world).
-    :param joint_names: actuated joints from base to end effector (the action order).
-    :param lower: joint lower limits (rad). :param upper: joint upper limits (rad).
-    :param effort: torque limits (N m; derived from the arm where the URDF gives 0 or none,
-        :mod:`.effort`). :param velocity: velocity limits (rad/s).
-    :param point_offsets: the tip and top points in the point frame, ``((x, y, z), (x, y, z))``.
-    :param peg_radius: peg radius (m), from the URDF or the attached peg.
-    :param peg_axis: the end-effector link's axis the attached peg points along ("" for a peg
-        the URDF carries).
-    :param base_link: the link the arm's chain starts from (the root unless chosen).
-    :param held: every joint of the description that could move but is held fixed (above the
-        base link, off the chain, mimic or prismatic), with the position it is held at (rad or
-        m), in the description's order.
-    """
-
-    urdf_text: str
-    source_path: str
-    source_sha256: str
-    root_link: str
-    ee_link: str
-    point_link: str
-    peg_link: str
-    joint_names: tuple[str, ...]
-    lower: tuple[float, ...]
-    upper: tuple[float, ...]
-    effort: tuple[float, ...]
-    velocity: tuple[float, ...]
-    point_offsets: tuple[tuple[float, float, float], tuple[float, float, float]]
-    peg_radius: float
-    peg_axis: str = ""
-    base_link: str = ""
-    held: tuple[tuple[str, float], ...] = ()
-
-    @property
-    def dof(self) -> int:
-        return len(self.joint_names)
 
 
 def load_arm(
@@ -268,10 +223,6 @@ def _check_mass_matrix(arm: ArmSpec, massless: Sequence[str], path: str) -> None
     massless wrist whose axes align): the mass matrix is then singular and no simulator can
     integrate the arm.  Checked at q = 0 (where the simulated world starts) and at random
     poses within the limits, with the inertias PyBullet uses."""
-    import torch
-
-    from lolgps_torch.robot.rigid_body import ArmDynamics  # it imports this module
-
     lower, upper = (torch.tensor(b, dtype=torch.float64) for b in (arm.lower, arm.upper))
     draw = torch.rand(8, arm.dof, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     poses = torch.cat(
@@ -294,8 +245,6 @@ def _with_derived_effort(arm: ArmSpec, unknown: Sequence[str], path: str) -> Arm
     """``arm`` with the efforts of the joints ``unknown`` (published as 0 or not at all)
     derived from the arm (:mod:`.effort`), in its URDF text too; one :class:`ArmWarning` per
     joint names the value used."""
-    from lolgps_torch.robot.effort import EFFORT_MARGIN, derived_effort  # it imports this module
-
     derived = dict(zip(arm.joint_names, derived_effort(arm), strict=True))
     tree = ET.fromstring(arm.urdf_text)
     for joint in tree.findall("joint"):

@@ -31,8 +31,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.robot.rigid_body import ArmDynamics
+from lolgps_torch.robot.spec import ArmSpec
 
 EFFORT_MARGIN = 3.0
 POSES = 1024

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.spec import ArmSpec
 
 
 class PegKinematics:

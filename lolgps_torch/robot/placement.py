@@ -34,8 +34,8 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.spec import ArmSpec
 
 Position = tuple[float, float]
 # (rho, eta) offsets from the preferred fractions, and azimuths (degrees) about the base's +x,

@@ -7,7 +7,7 @@ The equation of motion of the actuated joints ``q: [..., n]`` is
 with the mass matrix M, the Coriolis and centrifugal torques c, the gravity torques g and the
 generalised force ``tau_ext = sum_b S_b^T w_b`` of external wrenches ``w_b`` on the bodies.
 
-The chain is the path of the :class:`~lolgps_torch.robot.arm.ArmSpec`'s URDF from its root
+The chain is the path of the :class:`~lolgps_torch.robot.spec.ArmSpec`'s URDF from its root
 link to the point frame. Body k is the child link of the k-th actuated joint together with
 everything rigidly attached to it: the links below it through fixed joints, through *locked*
 joints (moving joints that are not actuated, held at a given position: gripper fingers,
@@ -48,7 +48,7 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.spec import ArmSpec
 
 InertiaSource = Literal["urdf", "pybullet"]
 _MOVING = ("revolute", "continuous", "prismatic")

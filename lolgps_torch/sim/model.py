@@ -26,8 +26,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lolgps_torch.robot.arm import ArmSpec
 from lolgps_torch.robot.rigid_body import ArmDynamics, Frames
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout
 

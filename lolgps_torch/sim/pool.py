@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.world import WorldConfig
 

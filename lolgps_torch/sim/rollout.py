@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 from lolgps_torch.types import LinearGaussian
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lolgps_torch.errors import LolgpsError, NumericalError
-from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.pybullet_quiet import pb, silenced
 from lolgps_torch.state import StateLayout
 
