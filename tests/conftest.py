@@ -220,12 +220,13 @@ def check_published_arm(
     dof: int,
     ee_link: str | None = None,
     chain: tuple[str | None, str | None] = (None, None),
+    scale: float | None = None,
 ) -> None:
     """A published description as published: ``dof`` actuated joints (ending at ``ee_link``,
     if given; on the chain the flags ``--base-link`` and ``--ee-link`` pick, ``chain``, where
     given), kinematics agreeing with PyBullet's at random poses,
-    every position of the paper stream (scaled to the arm where it does not fit, as
-    ``--scale auto`` does) reachable from the placed hole (one batched IK; test_world checks
+    every position of the paper stream (scaled by ``scale``, or to the arm where it does not
+    fit, as ``--scale auto`` does, when None) reachable from the placed hole (one batched IK; test_world checks
     ``PegTask.check_reachable`` itself), and one short iteration of the local learner."""
     import warnings
 
@@ -243,7 +244,7 @@ def check_published_arm(
     )
     from lolgps_torch.robot.validate import ArmWarning
     from lolgps_torch.sim.world import WorldConfig
-    from lolgps_torch.task import PegTask, TaskConfig, fit_scale
+    from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled
 
     placement = PlacementConfig(positions=tuple(default_training_stream(AreaConfig(), 0)[0]))
     config = TaskConfig(
@@ -255,7 +256,7 @@ def check_published_arm(
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ArmWarning)
-        config, _ = fit_scale(config)
+        config = fit_scale(config)[0] if scale is None else scaled(config, scale)
         task = PegTask(config, n_worlds=2)
     stream = config.placement.positions
     try:

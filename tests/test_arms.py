@@ -29,7 +29,14 @@ from lolgps_torch.robot.placement import PlacementConfig
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
-from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled, task_config_from_dict
+from lolgps_torch.task import (
+    REFERENCE_REACH,
+    PegTask,
+    TaskConfig,
+    fit_scale,
+    scaled,
+    task_config_from_dict,
+)
 
 DATA = pybullet_data.getDataPath()
 XARM = os.path.join(DATA, "xarm/xarm6_robot.urdf")
@@ -51,11 +58,11 @@ FETCH = str(ARMS / "mani_skill/fetch/fetch.urdf")
 PR2 = str(ARMS / "example-robot-data/robots/pr2_description/urdf/pr2.urdf")
 SO100 = str(ARMS / "mani_skill/so100/so100.urdf")
 # published arms on a mobile base, on a torso, and small: name -> (URDF, degrees of freedom,
-# the --base-link and --ee-link flags that pick the arm)
-MOUNTED: dict[str, tuple[str, int, tuple[str | None, str | None]]] = {
-    "maniskill-fetch": (FETCH, 7, ("torso_lift_link", None)),
-    "erd-pr2-left": (PR2, 7, ("torso_lift_link", "l_wrist_roll_link")),
-    "maniskill-so100": (SO100, 5, (None, None)),
+# the --base-link and --ee-link flags that pick the arm, the scale --scale auto gives it)
+MOUNTED: dict[str, tuple[str, int, tuple[str | None, str | None], float]] = {
+    "maniskill-fetch": (FETCH, 7, ("torso_lift_link", None), 1.0),
+    "erd-pr2-left": (PR2, 7, ("torso_lift_link", "l_wrist_roll_link"), 1.0),
+    "maniskill-so100": (SO100, 5, (None, None), 0.552 / REFERENCE_REACH),  # reach 0.552 m
 }
 # published descriptions that cannot do the task, and the flag or element their error names
 REFUSED = {
@@ -225,17 +232,20 @@ def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
 def test_arm_on_a_base_or_torso_or_small_loads_places_and_iterates(name: str) -> None:
     """As the published arms above, with the arm picked by --base-link/--ee-link, the joints
     above and off it held, and the stream scaled to a small arm's reach."""
-    urdf, dof, chain = MOUNTED[name]
-    check_published_arm(urdf, dof, chain=chain)
+    urdf, dof, chain, scale = MOUNTED[name]
+    check_published_arm(urdf, dof, chain=chain, scale=scale)
 
 
 @pytest.mark.parametrize("name", sorted(REFUSED))
 def test_published_arm_that_cannot_do_the_task_gets_one_error_line(
     name: str, tmp_path: Path, run_script: ScriptRunner
 ) -> None:
-    """The default stream on it stops before any work with one line naming what to change."""
+    """The default stream, unscaled, stops before any work with one line naming what to
+    change (``--scale auto`` fits the small arms' reach: ``test_arm_on_a_base...``)."""
     urdf, message = REFUSED[name]
-    result = run_script("scripts/run_stream.py", "--urdf", str(urdf), "--out", str(tmp_path))
+    result = run_script(
+        "scripts/run_stream.py", "--urdf", str(urdf), "--scale", "1", "--out", str(tmp_path)
+    )
     errors = [line for line in result.err.splitlines() if line.startswith("error:")]
     assert result.code == 2 and len(errors) == 1 and message in errors[0], result.err
     assert not list(tmp_path.iterdir())
@@ -415,7 +425,9 @@ def test_published_arm_learns_the_default_stream(name: str, tmp_path: Path) -> N
     the global policy succeeds at >= 7 of the 8 training positions and every local controller
     ends within the success threshold. Minutes each."""
     out = tmp_path / "run"
-    urdf, _, (base, ee) = MOUNTED[name] if name in MOUNTED else (CORPUS[name][0], 0, (None, None))
+    urdf, _, (base, ee), _ = (
+        MOUNTED[name] if name in MOUNTED else (CORPUS[name][0], 0, (None, None), 1)
+    )
     picks = [*(["--base-link", base] if base else []), *(["--ee-link", ee] if ee else [])]
     cmd = [sys.executable, "scripts/run_stream.py", "--urdf", urdf, *picks, "--out", str(out)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)

@@ -392,8 +392,8 @@ def _refusal(
     return (
         f"the {positions.shape[0]} hole positions (spread {spread:.2f} m) and the start pose do "
         f"not fit in the reach of this arm ({radius:.2f} m) with the peg pointing down: at best "
-        f"{reached[0]} of {reached[1]} reachable; use closer positions (--conditions, --stream) "
-        f"or a shorter peg (--peg-length)"
+        f"{reached[0]} of {reached[1]} reachable; use closer positions (--conditions, --stream, "
+        f"--scale) or a shorter peg (--peg-length)"
     )
 
 
