@@ -46,6 +46,9 @@ _STEPS = (0.0, -0.1, 0.1, -0.2, 0.2, 0.3)
 _FAR_HEIGHTS = (0.45, 0.6, 0.75, -0.3, -0.45)
 _AZIMUTHS = (0, 45, -45, 90, -90, 135, -135, 180)
 _START_SCALES = (1.0, 0.5)
+# and with them: the start lower still, for arms whose wrist keeps the peg pointing down over a
+# narrow band of heights only (example-robot-data's Talos arm: 0.05 m above the mouth, not 0.1)
+_FAR_START_SCALES = (1.0, 0.5, 0.25)
 _SAMPLES = 16384  # random poses for the down-pointing workspace
 _REACH_SAMPLES = 4096  # the first of them, for the reach
 _SCREEN = 0.1  # candidates are solved if every target is this near (x reach) a sampled tip
@@ -316,8 +319,12 @@ def place_task(
     positions = torch.tensor(config.positions or ((0.0, 0.0),), dtype=torch.float64)
     positions = positions.to(kin.device)
     floor = torch.nn.functional.pad(positions, (0, 1), value=-depth)  # [M, 3] below the mouth
-    near_mouths, near_starts = _candidates(shoulder, radius, positions, config, _STEPS)
-    far_mouths, far_starts = _candidates(shoulder, radius, positions, config, _FAR_HEIGHTS)
+    near_mouths, near_starts = _candidates(
+        shoulder, radius, positions, config, (_STEPS, _START_SCALES)
+    )
+    far_mouths, far_starts = _candidates(
+        shoulder, radius, positions, config, (_FAR_HEIGHTS, _FAR_START_SCALES)
+    )
     mouths = torch.cat([near_mouths, far_mouths])  # [C, 3]
     start_offsets = torch.cat([near_starts, far_starts])
     tips = mouths[:, None] + floor  # [C, M, 3]
@@ -384,7 +391,7 @@ def _refusal(
     if holes_only:
         return (
             f"no start pose: the hole positions are reachable with the peg pointing down, but "
-            f"not the start {config.start_offset[2]:.2f} m (or half that) above the hole within "
+            f"not the start {config.start_offset[2]:.2f} m (or a half or a quarter of that) above the hole within "
             f"this arm's reach ({radius:.2f} m): use a shorter peg (--peg-length) or give the "
             f"start pose (--q0)"
         )
@@ -450,15 +457,15 @@ def _candidates(
     radius: float,
     positions: Tensor,
     config: PlacementConfig,
-    heights: tuple[float, ...],
+    steps: tuple[tuple[float, ...], tuple[float, ...]],
 ) -> tuple[Tensor, Tensor]:
     """Nominal mouths ``[C, 3]`` to try, preferred first, and the start tip's offset from each
     ``[C, 3]``.  A spot is ``shoulder + (rho R cos(a), rho R sin(a), -eta R)`` for azimuths a
-    about the base's +x and fractions (rho, eta) about the configured ones (eta offset by
-    ``heights``); each is tried as
+    about the base's +x and fractions (rho, eta) about the configured ones (eta offset by the
+    first of ``steps``); each is tried as
     it is, then shifted so that the positions' centre lies on it.  The start offset is turned
-    by a (so that "back" points towards the base), and scaled by f = 1, then 0.5 for arms too
-    short to lift the peg that high; the nearer (a, rho, eta, f) to (0, config, 1), the
+    by a (so that "back" points towards the base), and scaled by f, the second of ``steps``
+    (1, then 0.5 for arms too short to lift the peg that high); the nearer (a, rho, eta, f) to (0, config, 1), the
     earlier."""
     centre = torch.nn.functional.pad(
         (positions.min(dim=0).values + positions.max(dim=0).values) / 2, (0, 1)
@@ -467,8 +474,8 @@ def _candidates(
         (abs(a) / 45 + abs(r) / 0.1 + abs(e) / 0.1 + (1 - f) / 0.25, a, r, e, f)
         for a in _AZIMUTHS
         for r in _STEPS
-        for e in heights
-        for f in _START_SCALES
+        for e in steps[0]
+        for f in steps[1]
         if 0.1 <= config.reach_fraction + r <= 0.95
     )
     mouths, starts = [], []
