@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -28,6 +29,7 @@ from lolgps_torch.robot.placement import (
     vertical_peg_targets,
 )
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.pybullet_quiet import pb
@@ -126,7 +128,15 @@ def fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
     ``config.placement``) to the arm, else scaled (:func:`scaled`) to fit: by the arm's reach
     over :data:`REFERENCE_REACH`, then by :data:`_SHRINK` at each further try.  Returns the
     config, its placement pinned (the hole and start pose found), and a line saying what was
-    scaled ("" when nothing was); a :class:`LolgpsError` when no try fits (the last one's)."""
+    scaled ("" when nothing was); a :class:`LolgpsError` when no try fits (the last one's).
+    The arm's warnings are left to the task built from the result (one set, not one a try)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        return _fit_scale(config)
+
+
+def _fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
+    """:func:`fit_scale`, its warnings not silenced."""
     arm = load_task_arm(config)
     kinematics = PegKinematics(arm)
     try:
