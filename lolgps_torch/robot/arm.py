@@ -1,8 +1,9 @@
 """What the method needs to know about a URDF arm, read once with yourdfpy after the XML has
 been checked against what PyBullet and pytorch-kinematics need (:mod:`.validate`).
 
-yourdfpy (and trimesh, which it imports) is imported only when a URDF is parsed, so processes
-that merely receive an :class:`ArmSpec` (the evaluation's workers) do not pay for it.
+yourdfpy (and trimesh, which it imports) is imported only when a URDF is parsed, and the
+:class:`ArmSpec` itself lives in :mod:`.spec`, so processes that merely receive one (the
+evaluation's workers) do not pay for them.
 
 An :class:`ArmSpec` is the single description that drives both PyBullet (joint names are
 mapped to body joint indices) and pytorch-kinematics (the serial chain to the point
@@ -322,8 +323,8 @@ def _is_arm_joint(j: yourdfpy.Joint) -> bool:
 
 
 def _actuated_joints(chain: list[yourdfpy.Joint], ee_link: str) -> list[yourdfpy.Joint]:
-    """The actuated joints of the chain from the root to ``ee_link``; its mimic, prismatic and
-    other joints are locked."""
+    """The actuated joints of the chain from the base link to ``ee_link``; its mimic, prismatic
+    and other joints are held."""
     actuated = [j for j in chain if _is_arm_joint(j)]
     if not actuated:
         raise LolgpsError(
