@@ -278,6 +278,17 @@ def test_first_divergence_names_the_first_iteration_that_differs(
     expected = f"condition {iterations[1]['condition']}, iteration {iterations[1]['iteration']} "
     assert result.code == 0 and f"first difference: {expected}" in result.out, result.err
     assert "relative difference 0.5" in result.out
+    # the summaries: timings aside, equal; another distance is named, and --check fails
+    assert "the summaries are identical" in run_script(script, str(run), str(run), "--check").out
+    summary = json.loads((run / "summary.json").read_text())
+    summary["conditions"][0]["time_total"] = 1.0
+    (copy / "metrics.jsonl").write_text((run / "metrics.jsonl").read_text())
+    (copy / "summary.json").write_text(json.dumps(summary))
+    assert run_script(script, str(copy), str(run), "--check").code == 0
+    summary["conditions"][0]["local_final_distance"] = 1.0
+    (copy / "summary.json").write_text(json.dumps(summary))
+    checked = run_script(script, str(copy), str(run), "--check")
+    assert checked.code == 1 and "summary.conditions[0].local_final_distance" in checked.out
 
 
 def test_a_final_controller_that_misses_hands_d_g_to_the_newest_tried_one_that_succeeds() -> None:
