@@ -216,7 +216,7 @@ def _checked(
         assert [t.offset for t in teachers] == [(0.0, 0.0), (0.01, 0.0)]
         return Visit(next(scripted), f"rows of {seed}" if label else None, 2)
 
-    sstep = CheckedSStep(distill, visits, 0.06, rounds, repairs)  # type: ignore[arg-type]
+    sstep = CheckedSStep(distill, visits, 0.06, rounds > 0, rounds, repairs)  # type: ignore[arg-type]
     item = SimpleNamespace(offset=(0.01, 0.0), data=SimpleNamespace(x=torch.zeros(1, 2, 3)),
                            labels=None)  # fmt: skip
     return sstep(policy, item, seed=5), distill, policy  # type: ignore[arg-type]

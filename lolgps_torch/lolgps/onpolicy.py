@@ -149,26 +149,34 @@ class CheckedSStep:
     """The S-step (eq. 8) on the policy's own states as well, checked in closed loop.
 
     After the first fit, the policy visits every position learnt so far (:class:`PolicyVisits`:
-    the noiseless rollouts are the check). Then ``rounds`` rounds, and more while a position
-    is missed (final distance not below ``threshold``) up to ``repairs`` in all, each of
-    ``steps // 3`` Adam steps from the best policy so far on the data with every visited state
-    so far, the missed conditions' D_g entering twice, followed by a visit. The policy reaching
-    the most positions (then the smallest total distance) is kept. With ``rounds`` 0 no state
-    is labelled and only missed positions start rounds (the repair rounds alone).
+    the noiseless rollouts are the check; with ``label``, the states are labelled and kept,
+    for this S-step's later rounds and, through the replay, for every later S-step). Then
+    ``rounds`` rounds, and more while a position is missed (final distance not below
+    ``threshold``) up to ``repairs`` in all, each of ``steps // 3`` Adam steps from the best
+    policy so far on the data with every visited state so far, the missed conditions' D_g
+    entering twice, followed by a visit. The policy reaching the most positions (then the
+    smallest total distance) is kept.
 
     :param distill: the S-step with replay.
     :param visits: the policy's visits.
     :param threshold: the success distance (m).
+    :param label: label and keep the visited states (off: the check alone).
     :param rounds: rounds always run (0: none).
     :param repairs: the most rounds while the policy misses (0 with ``rounds`` 0: the S-step
         alone, as in the paper).
     """
 
     def __init__(
-        self, distill: Distiller, visits: PolicyVisits, threshold: float, rounds: int, repairs: int
+        self,
+        distill: Distiller,
+        visits: PolicyVisits,
+        threshold: float,
+        label: bool,
+        rounds: int,
+        repairs: int,
     ) -> None:
-        self.distill, self.visits = distill, visits
-        self.threshold, self.rounds, self.repairs = threshold, rounds, repairs
+        self.distill, self.visits, self.threshold = distill, visits, threshold
+        self.label, self.rounds, self.repairs = label, rounds, repairs
 
     def teachers(self, item: Labelled) -> list[Teacher]:
         """Every condition learnt so far: the replay's, then ``item``'s."""
@@ -190,8 +198,7 @@ class CheckedSStep:
         losses = self.distill(policy, [item], seed)
         if not policy.trained:
             return Checked(losses, [float("nan")] * len(teachers), 0, None, 0)
-        label = self.rounds > 0
-        seen = self.visits(policy, teachers, seed, label)
+        seen = self.visits(policy, teachers, seed, self.label)
         parts, rollouts = [seen.visited], seen.rollouts
         best = Checked(losses, seen.distances, 0, None, 0)
         state = copy.deepcopy(policy.state_dict())
@@ -206,7 +213,7 @@ class CheckedSStep:
             visited = _joined(parts)
             round_seed = seed + 1_000_003 * rounds
             losses = self.distill(policy, [item], round_seed, missed, refit, visited)
-            seen = self.visits(policy, teachers, round_seed, label)
+            seen = self.visits(policy, teachers, round_seed, self.label)
             parts.append(seen.visited)
             rollouts += seen.rollouts
             if self.score(seen.distances) > self.score(best.distances):

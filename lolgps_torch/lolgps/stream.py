@@ -80,9 +80,11 @@ class StreamConfig:
         section 24, docs/HISTORY.md section 12).
     :param repairs: the most S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0 with ``onpolicy_rounds`` 0: one S-step, as in the paper).
-    :param onpolicy_rounds: S-step rounds on the policy's own states, after the first fit:
-        the policy visits every condition learnt so far and the states inside the teachers'
-        support join the data (0: none, the states are not labelled).
+    :param onpolicy: label the states the policy visits at every condition learnt so far
+        after each S-step where they lie inside the teachers' support; they join the data of
+        the S-step's later rounds and of every later S-step.
+    :param onpolicy_rounds: S-step rounds always run after the first fit, each followed by a
+        visit (0: none).
     :param onpolicy_noisy: rollouts with the policy's own noise per condition and visit,
         besides the noiseless one.
     :param onpolicy_gate: the teachers' support, in standard deviations of D_g's states.
@@ -104,6 +106,7 @@ class StreamConfig:
     transfer: Transfer = "policy"
     transfer_phases: int = 2
     repairs: int = 6
+    onpolicy: bool = False
     onpolicy_rounds: int = 0
     onpolicy_noisy: int = 2
     onpolicy_gate: float = 3.0
@@ -187,12 +190,7 @@ class StreamLearner:
             config.augment_scale,
             self.replay if config.replay else None,
         )
-        visits = PolicyVisits(
-            task, config.onpolicy_noisy, config.onpolicy_gate, config.onpolicy_floor
-        )
-        self.sstep = CheckedSStep(
-            distill, visits, self.threshold, config.onpolicy_rounds, config.repairs
-        )
+        self.sstep = checked_sstep(task, config, distill)
 
     def learn_condition(self, index: int, offset: tuple[float, float]) -> ConditionSummary:
         """One condition of Algorithm 2: local learning, D_g and the S-step with replay;
@@ -349,6 +347,16 @@ class StreamLearner:
         if done > 0:
             self.policy = load_policy(self.folder.checkpoint_dir(done - 1), self.task.device)
         return [ConditionSummary.from_json(self.folder.read_entry(i)) for i in range(done)]
+
+
+def checked_sstep(task: PegTask, config: StreamConfig, distill: Distiller) -> CheckedSStep:
+    """The S-step ``distill``, on the policy's own states and checked in closed loop, with
+    the stream's settings."""
+    visits = PolicyVisits(task, config.onpolicy_noisy, config.onpolicy_gate, config.onpolicy_floor)
+    threshold = task.config.world.success_threshold
+    return CheckedSStep(
+        distill, visits, threshold, config.onpolicy, config.onpolicy_rounds, config.repairs
+    )
 
 
 def condition_seed(config: StreamConfig, index: int) -> int:

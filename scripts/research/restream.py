@@ -2,7 +2,7 @@
 
     python scripts/research/restream.py --run DIR [--steps N] [--batch-size B] [--lr LR]
                                         [--adam-dtype float32] [--repairs R] [--seed S]
-                                        [--onpolicy-rounds R] [--onpolicy-noisy N]
+                                        [--onpolicy] [--onpolicy-rounds R] [--onpolicy-noisy N]
                                         [--onpolicy-gate G] [--jitter MM]
 
 Local learning is not repeated: condition ``k``'s D_g (its stored samples and controllers)
@@ -37,9 +37,13 @@ from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, consistent_states
-from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits
 from lolgps_torch.lolgps.run import load_run
-from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, policy_distances
+from lolgps_torch.lolgps.stream import (
+    StreamConfig,
+    checked_sstep,
+    condition_seed,
+    policy_distances,
+)
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
 from lolgps_torch.task import PegTask
@@ -90,6 +94,7 @@ def main() -> None:
         augment_scale=run.augment_scale,
         seed=seed,
         repairs=args.repairs,
+        onpolicy=args.onpolicy,
         onpolicy_rounds=args.onpolicy_rounds,
         onpolicy_noisy=args.onpolicy_noisy,
         onpolicy_gate=args.onpolicy_gate,
@@ -113,10 +118,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             replay = ReplayBuffer(RunFolder(tmp).replay_path)
             distill = Distiller(task, config, stream.augment, stream.augment_scale, replay)
-            visits = PolicyVisits(
-                task, stream.onpolicy_noisy, stream.onpolicy_gate, stream.onpolicy_floor
-            )
-            sstep = CheckedSStep(distill, visits, threshold, stream.onpolicy_rounds, stream.repairs)
+            sstep = checked_sstep(task, stream, distill)
             for k, record in enumerate(loaded.records):
                 if record.p_cur is None:
                     raise LolgpsError(f"condition {k} was labelled by the policy: not supported")
