@@ -127,14 +127,14 @@ def test_trace_policy_prints_rollout_and_fit_per_condition(
     assert result.code == 0, result.err[-2000:]
     lines = result.out.strip().splitlines()
     assert lines[0] == "policy after condition 1; columns: steps [0, 5]"
-    # three lines per condition: the rollout, its support distance, the D_g fit
     assert [line.split()[1] for line in lines[1::3]] == ["0", "1"]
     # the rollout starts at the start pose, whose tip error at step 0 is the same for both
     # conditions up to the hole offsets (0, 0) and (0.01, -0.01): 10 mm apart in x and y
     x0, y0 = (float(v) for v in lines[1].split("mm (")[1].split(",")[:2])
     x1, y1 = (float(v) for v in lines[4].split("mm (")[1].split(",")[:2])
     assert (x0 - x1, y0 - y1) == pytest.approx((10.0, -10.0), abs=1.0)
-    assert all(line.strip().startswith("support (sd) ") for line in lines[2::3])
+    # every rollout, and every D_g sample, starts at the start pose: inside the support
+    assert all(line.strip().startswith("support (sd) 0.0 ") for line in lines[2::3])
     assert all(line.strip().startswith("D_g fit: ") for line in lines[3::3])
     bad = run_script(*cmd, "--steps", "100")
     assert bad.code == 2 and bad.err.strip() == "error: --steps must lie in [0, 100), got [100]"
@@ -308,17 +308,6 @@ def test_first_divergence_names_the_first_iteration_that_differs(
     expected = f"condition {iterations[1]['condition']}, iteration {iterations[1]['iteration']} "
     assert result.code == 0 and f"first difference: {expected}" in result.out, result.err
     assert "relative difference 0.5" in result.out
-    # the summaries: timings aside, equal; another distance is named, and --check fails
-    assert "the summaries are identical" in run_script(script, str(run), str(run), "--check").out
-    summary = json.loads((run / "summary.json").read_text())
-    summary["conditions"][0]["time_total"] = 1.0
-    (copy / "metrics.jsonl").write_text((run / "metrics.jsonl").read_text())
-    (copy / "summary.json").write_text(json.dumps(summary))
-    assert run_script(script, str(copy), str(run), "--check").code == 0
-    summary["conditions"][0]["local_final_distance"] = 1.0
-    (copy / "summary.json").write_text(json.dumps(summary))
-    checked = run_script(script, str(copy), str(run), "--check")
-    assert checked.code == 1 and "summary.conditions[0].local_final_distance" in checked.out
 
 
 def test_a_final_controller_that_misses_hands_d_g_to_the_newest_tried_one_that_succeeds() -> None:

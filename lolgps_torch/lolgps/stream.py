@@ -106,8 +106,8 @@ class StreamConfig:
     transfer: Transfer = "policy"
     transfer_phases: int = 2
     repairs: int = 6
-    onpolicy: bool = False
-    onpolicy_rounds: int = 0
+    onpolicy: bool = True
+    onpolicy_rounds: int = 2
     onpolicy_noisy: int = 2
     onpolicy_gate: float = 3.0
     onpolicy_floor: float = 0.005
