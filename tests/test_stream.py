@@ -127,13 +127,15 @@ def test_trace_policy_prints_rollout_and_fit_per_condition(
     assert result.code == 0, result.err[-2000:]
     lines = result.out.strip().splitlines()
     assert lines[0] == "policy after condition 1; columns: steps [0, 5]"
-    assert [line.split()[1] for line in lines[1::2]] == ["0", "1"]
+    assert [line.split()[1] for line in lines[1::3]] == ["0", "1"]
     # the rollout starts at the start pose, whose tip error at step 0 is the same for both
     # conditions up to the hole offsets (0, 0) and (0.01, -0.01): 10 mm apart in x and y
     x0, y0 = (float(v) for v in lines[1].split("mm (")[1].split(",")[:2])
-    x1, y1 = (float(v) for v in lines[3].split("mm (")[1].split(",")[:2])
+    x1, y1 = (float(v) for v in lines[4].split("mm (")[1].split(",")[:2])
     assert (x0 - x1, y0 - y1) == pytest.approx((10.0, -10.0), abs=1.0)
-    assert all(line.strip().startswith("D_g fit: ") for line in lines[2::2])
+    # every rollout, and every D_g sample, starts at the start pose: inside the support
+    assert all(line.strip().startswith("support (sd) 0.0 ") for line in lines[2::3])
+    assert all(line.strip().startswith("D_g fit: ") for line in lines[3::3])
     bad = run_script(*cmd, "--steps", "100")
     assert bad.code == 2 and bad.err.strip() == "error: --steps must lie in [0, 100), got [100]"
 
