@@ -26,11 +26,6 @@ from lolgps_torch.errors import LolgpsError, check_fields
 from lolgps_torch.evaluation.scene import Clip, Scene, View, caption
 from lolgps_torch.lolgps.run import LoadedRun
 from lolgps_torch.policy.actor import policy_actor
-<<<<<<< HEAD
-from lolgps_torch.robot.spec import ArmSpec
-from lolgps_torch.sim.pybullet_quiet import pb
-=======
->>>>>>> main
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 

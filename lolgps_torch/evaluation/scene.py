@@ -23,7 +23,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import ArmSpec
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 
