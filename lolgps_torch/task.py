@@ -128,7 +128,8 @@ def fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
     ``config.placement``) to the arm, else scaled (:func:`scaled`) to fit: by the arm's reach
     over :data:`REFERENCE_REACH`, then by :data:`_SHRINK` at each further try.  Returns the
     config, its placement pinned (the hole and start pose found), and a line saying what was
-    scaled ("" when nothing was); a :class:`LolgpsError` when no try fits (the last one's).
+    scaled ("" when nothing was); a :class:`LolgpsError` when no try fits (the one that says
+    why the geometry as given does not).
     The arm's warnings are left to the task built from the result (one set, not one a try)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ArmWarning)
@@ -141,8 +142,8 @@ def _fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
     kinematics = PegKinematics(arm)
     try:
         return _pinned(config, arm, kinematics), ""
-    except LolgpsError:
-        pass
+    except LolgpsError as error:
+        unscaled = error
     radius = reach(arm, kinematics)[1]
     factor = min(1.0, radius / REFERENCE_REACH)
     for attempt in range(_TRIES):
@@ -153,7 +154,7 @@ def _fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
             break
         except LolgpsError:
             if attempt == _TRIES - 1:
-                raise
+                raise unscaled from None
     return placed, (
         f"the default geometry does not fit this arm's reach ({radius:.2f} m): hole offsets, "
         f"test areas, start height and attached peg scaled by {placed.scale:.3g} (--scale)"

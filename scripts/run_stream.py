@@ -277,10 +277,9 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
 
 def main() -> None:
     args = parse_args()
+    processes = workers(args)  # checked before the placement's search
     plan = plan_run(args)
-    task = PegTask(
-        plan.task, plan.stream.local.samples, device=str(plan.device), workers=workers(args)
-    )
+    task = PegTask(plan.task, plan.stream.local.samples, device=str(plan.device), workers=processes)
     try:  # the task's placement has checked every condition's reachability
         if not args.resume:  # recorded with the hole and start pose it was placed at
             placed = replace(plan.task, placement=pinned(plan.task.placement, task.geometry))

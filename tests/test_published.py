@@ -61,7 +61,7 @@ REFUSED = {
     ),
     "fingers-finger": (  # 3 joints: the peg points down along a curve at most
         ARMS / "robot_properties_fingers/urdf/finger.urdf",
-        "the peg cannot point down",
+        "the start pose do not fit in the reach of this arm",
     ),
     "fingers-trifinger": (
         ARMS / "robot_properties_fingers/urdf/trifinger.urdf",
