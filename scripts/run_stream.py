@@ -182,12 +182,14 @@ def plan_run(args: argparse.Namespace) -> Plan:
             task,
             placement=replace(task.placement, mouth=saved.placement.mouth, q0=saved.placement.q0),
         )
-    elif args.scale != "auto":
-        task = scaled(task, scale_factor(args.scale))
-    else:
-        task, note = fit_scale(task)
-        if note:
-            print(note)
+    else:  # the folder checked before the placement's search, which may take a while
+        check_folder(folder, {}, args.resume)
+        if args.scale != "auto":
+            task = scaled(task, scale_factor(args.scale))
+        else:
+            task, note = fit_scale(task)
+            if note:
+                print(note)
     conditions = list(task.placement.positions)
     urdf_text = portable_urdf(args.urdf, task.package_path)
     config = as_stored(
@@ -200,8 +202,8 @@ def plan_run(args: argparse.Namespace) -> Plan:
             "stages": stages,
         }
     )
-    check_folder(folder, config, args.resume)
     if args.resume:
+        check_folder(folder, config, args.resume)
         task = folder.task_config(config["task"])
     return Plan(folder, config, urdf_text, args.method, stream, task, conditions, device)
 
