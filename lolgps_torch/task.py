@@ -20,6 +20,7 @@ from lolgps_torch.robot.arm import ArmSpec, PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
 from lolgps_torch.sim.model import ControlStep
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
@@ -33,7 +34,8 @@ class TaskConfig:
     """Everything that defines the task.  :param urdf: path of the arm's URDF.
     :param ee_link: end-effector link (detected when None).
     :param package_path: folders searched for the ROS packages that ``package://`` mesh URIs
-        name, after the URDF's ancestors and ROS_PACKAGE_PATH."""
+        name, after the URDF's ancestors and ROS_PACKAGE_PATH.
+    :param plant: how the simulated arm departs from the URDF; only the worlds read it."""
 
     urdf: str
     ee_link: str | None = None
@@ -42,6 +44,7 @@ class TaskConfig:
     world: WorldConfig = field(default_factory=WorldConfig)
     placement: PlacementConfig = field(default_factory=PlacementConfig)
     cost: CostConfig = field(default_factory=CostConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
 
     def __post_init__(self) -> None:
         if self.ee_link is not None and not self.ee_link:
@@ -54,10 +57,12 @@ class TaskConfig:
             ("world", WorldConfig),
             ("placement", PlacementConfig),
             ("cost", CostConfig),
+            ("plant", PlantConfig),
         )
         for name, kind in parts:
             if not isinstance(getattr(self, name), kind):
                 raise LolgpsError(f"task {name} settings must be a {kind.__name__}")
+        self.plant.delay_steps(self.world.dt / self.world.substeps)
 
 
 class PegTask:
@@ -91,16 +96,20 @@ class PegTask:
                 self.geometry.q0,
                 n_worlds,
                 device,
+                config.plant,
             )
         except (pb.error, torch.linalg.LinAlgError) as error:
             message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
             raise LolgpsError(f"{config.urdf}: the arm cannot be simulated: {message}") from None
-        setup = WorldSetup(self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0)
+        setup = WorldSetup(
+            self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0, config.plant
+        )
         parallel = workers > 1 and self.device.type == "cpu"
         self.pool = RolloutPool(setup, workers, self.sampler) if parallel else None
         effort = torch.tensor(self.arm.effort, dtype=torch.float64)
         self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
         self._model: ControlStep | None = None
+        self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
 
     @property
     def model(self) -> ControlStep:
@@ -136,31 +145,34 @@ class PegTask:
             )
 
     def effective_inertia(self) -> Tensor:
-        """``1 / diag(M(q0)^{-1})`` per actuated joint (kg m^2): the inertia each joint feels."""
+        """``1 / diag(M(q0)^{-1})`` per actuated joint (kg m^2): the inertia each joint feels,
+        in the URDF's arm (not the plant's)."""
         world = self.sampler.worlds[0]
+        client, body = world.reference
         q_all = [0.0] * len(world.movable)
         for j, i in zip(world.actuated_in_movable, range(self.arm.dof), strict=True):
             q_all[j] = self.geometry.q0[i]
-        M = torch.tensor(pb.calculateMassMatrix(world.body, q_all, physicsClientId=world.client))
+        M = torch.tensor(pb.calculateMassMatrix(body, q_all, physicsClientId=client))
         idx = torch.tensor(world.actuated_in_movable)
         Minv = torch.linalg.inv(M)[idx][:, idx]
         return (1.0 / torch.diagonal(Minv)).to(dtype=torch.float64, device=self.device)
 
     def joint_damping(self) -> Tensor:
-        """The joint damping b (N m s/rad) PyBullet applies, per actuated joint."""
+        """The joint damping b (N m s/rad) of the URDF, per actuated joint."""
         world = self.sampler.worlds[0]
-        b = [
-            pb.getJointInfo(world.body, j, physicsClientId=world.client)[6] for j in world.joint_ids
-        ]
+        client, body = world.reference
+        b = [pb.getJointInfo(body, j, physicsClientId=client)[6] for j in world.joint_ids]
         return torch.tensor(b, dtype=torch.float64, device=self.device)
 
     def sample(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
         """One rollout per offset, each run alone (on the worker processes, if any), scored by
-        the cost."""
+        the cost; each call's sensor noise is new."""
+        batch, self._batches = self._batches, self._batches + 1
         if self.pool is None:
-            x, u, final = rollout_rows(self.sampler, act, offsets, range(len(offsets)))
+            x, u, final = rollout_rows(self.sampler, act, offsets, range(len(offsets)), batch)
         else:
-            x, u, final = (part.to(self.device) for part in self.pool.rollout(act, offsets))
+            rolled = self.pool.rollout(act, offsets, batch)
+            x, u, final = (part.to(self.device) for part in rolled)
         return self.score(x, u, final, offsets)
 
     def score(

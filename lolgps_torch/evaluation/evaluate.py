@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +35,7 @@ from lolgps_torch.evaluation.square import SquareConfig, square_test_positions
 from lolgps_torch.evaluation.transfer import compute_scratch, rates_by_condition, transfer_rows
 from lolgps_torch.evaluation.worker import Job, PolicyState, Position
 from lolgps_torch.lolgps.run import RunInfo, read_run
+from lolgps_torch.sim.plant import PlantConfig
 
 
 def stage_policies(folder: RunFolder, info: RunInfo) -> list[tuple[int, PolicyState]]:
@@ -229,6 +230,7 @@ def evaluate_run(
     batch_size: int = 10,
     square: tuple[SquareConfig, int] | None = None,
     ray: str | None = None,
+    plant: PlantConfig | None = None,
 ) -> dict[str, Any]:
     """Evaluate every stage's checkpoint of ``run_dir`` and write its ``eval.json``.
 
@@ -243,6 +245,7 @@ def evaluate_run(
         the seed of its positions.
     :param ray: run the rollouts on Ray instead of processes: ``"local"`` starts a local
         instance of ``workers`` CPUs, anything else is a cluster address (e.g. ``auto``).
+    :param plant: the simulated arm to evaluate on (default: the run's own).
     :returns: the dict written to ``eval.json``.
     """
     if areas is not None and positions is not None:
@@ -253,6 +256,8 @@ def evaluate_run(
         areas = AreaConfig()
     folder = RunFolder(run_dir)
     info = read_run(folder)
+    if plant is not None:
+        info = replace(info, task=replace(info.task, plant=plant))
     policies = stage_policies(folder, info)
     if square is not None:
         groups = _square_group(*square, info)
@@ -267,6 +272,7 @@ def evaluate_run(
         "mode": "square" if square else "positions" if positions is not None else "areas",
         "area_config": asdict(areas) if areas is not None else None,
         "success_threshold": info.task.world.success_threshold,
+        "plant": asdict(info.task.plant),
         "training": {"conditions": [list(c) for c in info.conditions], "stages": info.stages},
         "groups": groups,
         "stages": stages,
