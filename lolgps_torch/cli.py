@@ -163,6 +163,7 @@ TASK_FLAGS = ConfigFlags(
         "peg-axis": ("peg.axis",),
         "q0": ("placement.q0",),
         "friction": ("world.friction",),
+        "known-delay": ("world.known_delay",),
         "action-weight": ("cost.action_weight",),
         "descent-height": ("cost.descent_height",),
         "descent-steps": ("cost.descent_steps",),

@@ -25,7 +25,6 @@ from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.world import WorldConfig
-from lolgps_torch.state import StateLayout
 from lolgps_torch.types import Trajectories
 
 
@@ -83,7 +82,7 @@ class PegTask:
         self.config = config
         self.device = torch.device(device)
         self.arm: ArmSpec = load_arm(config.urdf, config.ee_link, config.peg, config.package_path)
-        self.layout = StateLayout(self.arm.dof)
+        self.layout = config.world.layout(self.arm.dof)
         self.kinematics = PegKinematics(self.arm, self.device)
         try:  # an arm the loader accepts can still be one no pose or simulation works for
             self.geometry = place_task(

@@ -6,9 +6,11 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+import torch
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import ArmSpec, load_arm
+from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
@@ -156,3 +158,35 @@ def test_bad_plants_are_refused() -> None:
             PlantConfig(**bad)  # type: ignore[arg-type]
     with pytest.raises(LolgpsError, match="whole number of physics steps"):
         TaskConfig(urdf=KUKA, plant=PlantConfig(action_delay=0.015))
+
+
+def test_the_model_knows_the_delay(arm: ArmSpec, worlds: list[PegWorld]) -> None:
+    """A world whose commands act 60 ms late (6 physics steps: u_{t-2} then u_{t-1} drive each
+    control step) against its model told so: the state carries the last 2 actions, one model
+    step changes the joint velocities as PyBullet does to 1 %, and the analytic linearisation
+    is the autograd Jacobian."""
+    config = WorldConfig(known_delay=0.06)
+    world = PegWorld(arm, config, FAR, plant=PlantConfig(action_delay=0.06))
+    worlds.append(world)
+    layout, n = config.layout(arm.dof), arm.dof
+    assert (layout.history, layout.dX) == (2, 4 * n + 12)
+    rng = np.random.default_rng(1)
+    x = [world.reset(np.asarray(arm.lower) * 0.45 + np.asarray(arm.upper) * 0.55)]
+    commands = rng.normal(0.0, 3.0, (6, n))
+    x += [world.step(u) for u in commands]
+    states, actions = torch.as_tensor(np.stack(x)), torch.as_tensor(commands)
+    np.testing.assert_array_equal(x[-1][layout.actions], np.concatenate(commands[::-1][:2]))
+    step = ControlStep(arm, config)
+    predicted = step(states[:-1], actions)
+    change = states[1:, n : 2 * n] - states[:-1, n : 2 * n]
+    error = (predicted[:, n : 2 * n] - states[:-1, n : 2 * n] - change).norm(dim=-1)
+    assert float((error / change.norm(dim=-1))[2:].max()) < 0.01
+    torch.testing.assert_close(predicted[:, layout.actions], states[1:, layout.actions])
+    F, f0 = step.linearize(states[3:5], actions[3:5])
+    for i in range(2):
+        Jx, Ju = torch.autograd.functional.jacobian(step, (states[3 + i], actions[3 + i]))
+        torch.testing.assert_close(F[i], torch.cat([Jx, Ju], -1), rtol=1e-9, atol=1e-9)
+    xu = torch.cat([states[3:5], actions[3:5]], -1)
+    torch.testing.assert_close(
+        (F @ xu[..., None]).squeeze(-1) + f0, step(states[3:5], actions[3:5])
+    )

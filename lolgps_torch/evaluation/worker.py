@@ -133,7 +133,9 @@ class SetupRoller:
 
     def __init__(self, setup: RolloutSetup) -> None:
         torch.set_num_threads(1)
-        self.roller = PolicyRoller(setup.sampler(), StateLayout(setup.arm.dof), setup.policies)
+        self.roller = PolicyRoller(
+            setup.sampler(), setup.world.layout(setup.arm.dof), setup.policies
+        )
 
     def roll(self, index: int, job: Job) -> tuple[int, Rollouts]:
         """``(index, rollouts of job)``."""
@@ -160,7 +162,7 @@ def run_worker(
     torch.set_num_threads(1)
     try:
         setup = setups.get()
-        roller = PolicyRoller(setup.sampler(), StateLayout(setup.arm.dof), setup.policies)
+        roller = PolicyRoller(setup.sampler(), setup.world.layout(setup.arm.dof), setup.policies)
         while (index := next_job(counter, len(jobs))) is not None:
             results.put((index, roller(jobs[index])))
     except LolgpsError as error:

@@ -33,6 +33,18 @@ GravityCompensation = Literal["plant", "model", "none"]
 VELOCITY_NOISE_RATIO = 10.0  # velocity noise per unit of joint-angle noise (rad/s per rad)
 
 
+def physics_steps(seconds: float, physics_step: float, flag: str) -> int:
+    """``seconds`` as a whole number of physics steps of ``physics_step`` seconds; any other
+    duration is a :class:`LolgpsError` naming ``flag``."""
+    steps = round(seconds / physics_step)
+    if abs(steps * physics_step - seconds) > 1e-9:
+        raise LolgpsError(
+            f"{flag} {seconds:g} s is not a whole number of physics steps of {physics_step:g} s "
+            "(dt / substeps)"
+        )
+    return steps
+
+
 @dataclass(frozen=True)
 class PlantConfig:
     """How the simulated arm differs from its URDF (module docstring).
@@ -83,15 +95,8 @@ class PlantConfig:
         return self.inertia_scale > 0.0 or self.payload > 0.0
 
     def delay_steps(self, physics_step: float) -> int:
-        """The delay in physics steps of ``physics_step`` seconds; a delay that is not a whole
-        number of them is a :class:`LolgpsError`."""
-        steps = round(self.action_delay / physics_step)
-        if abs(steps * physics_step - self.action_delay) > 1e-9:
-            raise LolgpsError(
-                f"--action-delay {self.action_delay:g} s is not a whole number of physics steps "
-                f"of {physics_step:g} s (dt / substeps)"
-            )
-        return steps
+        """The delay in physics steps of ``physics_step`` seconds (:func:`physics_steps`)."""
+        return physics_steps(self.action_delay, physics_step, "--action-delay")
 
     def link_factors(self, links: int) -> np.ndarray:
         """The per-link mass and inertia factors ``[links]`` (all 1 when S = 0)."""

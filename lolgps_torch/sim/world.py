@@ -30,7 +30,12 @@ import numpy as np
 
 from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.arm import ArmSpec
-from lolgps_torch.sim.plant import NOMINAL_PLANT, VELOCITY_NOISE_RATIO, PlantConfig
+from lolgps_torch.sim.plant import (
+    NOMINAL_PLANT,
+    VELOCITY_NOISE_RATIO,
+    PlantConfig,
+    physics_steps,
+)
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.state import StateLayout
 
@@ -52,6 +57,9 @@ class WorldConfig:
         drifted 7 rad in 5 s with zero action before this).
     :param max_joint_speed: joint speed (rad/s) beyond which a state counts as a simulator
         blow-up (PyBullet itself caps joint speeds at 100 rad/s by default).
+    :param known_delay: the command delay (s) the learner allows for, whole physics steps: the
+        state carries the actions of the last ceil(d / dt) control steps and the arm's model
+        acts on each command d late (set it to the arm's latency)
     """
 
     dt: float = 0.05
@@ -67,6 +75,7 @@ class WorldConfig:
     success_threshold: float = 0.06
     damping_margin: float = 1.0
     max_joint_speed: float = 100.0
+    known_delay: float = 0.0
 
     def __post_init__(self) -> None:
         positive = {
@@ -95,6 +104,23 @@ class WorldConfig:
                 f"the hole's clearance at the floor ({self.clearance_bottom} m) exceeds that "
                 f"at the mouth ({self.clearance_mouth} m)"
             )
+        if not (math.isfinite(self.known_delay) and self.known_delay >= 0):
+            raise LolgpsError(f"--known-delay must be >= 0 and finite, got {self.known_delay}")
+        physics_steps(self.known_delay, self.dt / self.substeps, "--known-delay")
+
+    @property
+    def delay_steps(self) -> int:
+        """The known delay in physics steps."""
+        return physics_steps(self.known_delay, self.dt / self.substeps, "--known-delay")
+
+    @property
+    def history(self) -> int:
+        """Actions kept in the state: ``ceil(d / dt)`` for the known delay d."""
+        return -(-self.delay_steps // self.substeps)
+
+    def layout(self, dof: int) -> StateLayout:
+        """The state vector's layout for an arm of ``dof`` actuated joints."""
+        return StateLayout(dof, self.history)
 
 
 class PegWorld:
@@ -116,7 +142,7 @@ class PegWorld:
         plant: PlantConfig = NOMINAL_PLANT,
     ) -> None:
         self.arm, self.config, self.plant = arm, config, plant
-        self.layout = StateLayout(arm.dof)
+        self.layout = config.layout(arm.dof)
         self.nominal_mouth = np.asarray(nominal_mouth, dtype=np.float64)
         self.delay = plant.delay_steps(config.dt / config.substeps)
         self.client = self._connect()
@@ -140,6 +166,7 @@ class PegWorld:
         self._points = np.zeros(6)
         self._q_all: list[float] = [0.0] * len(self.movable)
         self._queue = np.zeros((self.delay, arm.dof))  # commands issued, not yet acting
+        self._issued = np.zeros((config.history, arm.dof))  # the last commands, newest first
         self._noise: np.random.Generator | None = None
         self.set_hole((0.0, 0.0))
 
@@ -299,6 +326,7 @@ class PegWorld:
         for j, qj in zip(self.joint_ids, q0, strict=True):
             pb.resetJointState(self.body, j, float(qj), 0.0, physicsClientId=self.client)
         self._queue = np.zeros_like(self._queue)
+        self._issued = np.zeros_like(self._issued)
         self._noise = self.plant.noise(key)
         self._prev_points = (self.points() - self.targets).reshape(6)
         return self.observe()  # zero point velocity at rest
@@ -322,7 +350,7 @@ class PegWorld:
             scale = self.plant.obs_noise
             q = q + self._noise.normal(0.0, scale, q.shape)
             qd = qd + self._noise.normal(0.0, VELOCITY_NOISE_RATIO * scale, qd.shape)
-        return np.concatenate([q, qd, pts, vel])
+        return np.concatenate([q, qd, pts, vel, self._issued.reshape(-1)])
 
     def step(self, u: np.ndarray) -> np.ndarray:
         """Issue torque ``u`` (on top of gravity compensation) for one control step, starting
@@ -334,6 +362,7 @@ class PegWorld:
         g = self.gravity_compensation()
         held = np.concatenate([self._queue, np.broadcast_to(u, (substeps, len(u)))])
         self._queue = held[substeps:]
+        self._issued = np.concatenate([u[None], self._issued])[: len(self._issued)]
         self._prev_points = self._points
         for s in range(substeps):
             tau = np.clip(held[s] + g, -self.effort, self.effort).tolist()
