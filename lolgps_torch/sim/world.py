@@ -362,7 +362,10 @@ class PegWorld:
         g = self.gravity_compensation()
         held = np.concatenate([self._queue, np.broadcast_to(u, (substeps, len(u)))])
         self._queue = held[substeps:]
-        self._issued = np.concatenate([u[None], self._issued])[: len(self._issued)]
+        # the commands as they act (within the effort limits): past commands beyond them
+        # would grow without bound under a controller that feeds them back
+        acting = np.clip(u + g, -self.effort, self.effort) - g
+        self._issued = np.concatenate([acting[None], self._issued])[: len(self._issued)]
         self._prev_points = self._points
         for s in range(substeps):
             tau = np.clip(held[s] + g, -self.effort, self.effort).tolist()
