@@ -175,7 +175,9 @@ def test_the_model_knows_the_delay(arm: ArmSpec, worlds: list[PegWorld]) -> None
     commands = rng.normal(0.0, 3.0, (6, n))
     x += [world.step(u) for u in commands]
     states, actions = torch.as_tensor(np.stack(x)), torch.as_tensor(commands)
-    np.testing.assert_array_equal(x[-1][layout.actions], np.concatenate(commands[::-1][:2]))
+    np.testing.assert_allclose(
+        x[-1][layout.actions], np.concatenate(commands[::-1][:2]), rtol=0, atol=1e-12
+    )
     step = ControlStep(arm, config)
     predicted = step(states[:-1], actions)
     change = states[1:, n : 2 * n] - states[:-1, n : 2 * n]
