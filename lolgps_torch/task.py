@@ -15,17 +15,29 @@ from torch import Tensor
 
 from lolgps_torch.configs import from_dict
 from lolgps_torch.cost.l12 import CostConfig, PegCost
+from lolgps_torch.dynamics.identify import (
+    ArmParameters,
+    IdentifyConfig,
+    TorqueBalance,
+    Transitions,
+    identified_dynamics,
+    identify,
+)
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import ArmSpec, PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import PlacementConfig, place_task, solve_ik, vertical_peg_targets
-from lolgps_torch.sim.model import ControlStep
+from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.types import Trajectories
+
+IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses
+CLEARANCE = 0.02  # m: a tip this far above the table touches nothing
+LIMIT_MARGIN = 0.05  # rad (or m): a joint this far from its limits is free
 
 
 @dataclass(frozen=True)
@@ -109,6 +121,7 @@ class PegTask:
         self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
         self._model: ControlStep | None = None
         self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
+        self._seen: list[Transitions] = []  # free-space transitions kept for identification
 
     @property
     def model(self) -> ControlStep:
@@ -116,6 +129,38 @@ class PegTask:
         if self._model is None:
             self._model = ControlStep(self.arm, self.config.world, device=self.device)
         return self._model
+
+    def record(self, samples: Trajectories, keep: int = IDENTIFY_TRANSITIONS) -> None:
+        """Keep the newest ``keep`` transitions of ``samples`` that are free of contact (the
+        tip higher than the table by :data:`CLEARANCE` before and after) and of the joint
+        limits (by :data:`LIMIT_MARGIN` rad), for :meth:`identify_model`."""
+        lay = self.layout
+        lower, upper = (
+            torch.tensor(limit, dtype=torch.float64, device=self.device)
+            for limit in (self.arm.lower, self.arm.upper)
+        )
+        x = torch.cat([samples.x, samples.final_state[:, None]], 1)
+        q, tip_height = x[..., lay.q], x[..., lay.points][..., 2]
+        clear = (tip_height > self.config.world.depth + CLEARANCE) & (
+            torch.minimum(q - lower, upper - q).amin(-1) > LIMIT_MARGIN
+        )
+        kept = Transitions.from_rollouts(x, samples.u, lay, clear[:, :-1] & clear[:, 1:])
+        self._seen.append(kept)
+        parts = zip(*self._seen, strict=True)
+        self._seen = [Transitions(*(torch.cat(list(part))[-keep:] for part in parts))]
+
+    def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
+        """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the
+        identified arm's (None, the model unchanged, before any transition)."""
+        if not self._seen or self._seen[0].q0.shape[0] == 0:
+            return None
+        urdf = ControlStep(self.arm, self.config.world, device=self.device).urdf
+        effort = torch.tensor(self.arm.effort, dtype=torch.float64, device=self.device)
+        balance = TorqueBalance(urdf, effort, self.config.world.dt, LINK_DAMPING)
+        params = identify(balance, self._seen[0], config)
+        identified = (identified_dynamics(urdf, params), float(params.compensation))
+        self._model = ControlStep(self.arm, self.config.world, self.device, identified)
+        return params
 
     @property
     def T(self) -> int:

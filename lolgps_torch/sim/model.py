@@ -2,7 +2,7 @@
 
 :meth:`PegWorld.step <lolgps_torch.sim.world.PegWorld.step>` holds the torque
 ``tau = clip(u + g(q_0), -effort, effort)`` (g the gravity compensation at the start of the
-step) for ``substeps`` physics steps of ``h = dt / substeps``. Each physics step of PyBullet's
+step; for an identified arm, ``κ g_URDF``) for ``substeps`` physics steps of ``h = dt / substeps``. Each physics step of PyBullet's
 Featherstone solver is a semi-implicit Euler step,
 
     ``qd <- qd + h M(q)^{-1} (tau - b qd + tau_damp(q, qd) - c(q, qd) - g(q))``,
@@ -46,6 +46,9 @@ class ControlStep:
     :param arm: the parsed arm. :param config: the world's settings (dt, substeps, gravity,
         damping margin).
     :param device: where the model's tensors live.
+    :param identified: the arm as identified instead of its URDF: its rigid-body model (the
+        URDF's geometry) and κ, the gravity compensation ``κ g_URDF(q)`` it applies
+        (:mod:`lolgps_torch.dynamics.identify`); None: the URDF's, compensated exactly.
     """
 
     def __init__(
@@ -53,15 +56,17 @@ class ControlStep:
         arm: ArmSpec,
         config: WorldConfig,
         device: torch.device | str = "cpu",
+        identified: tuple[ArmDynamics, float] | None = None,
     ) -> None:
         self.config, self.layout = config, config.layout(arm.dof)
         self.h = config.dt / config.substeps
         delay = config.delay_steps  # j(s): which command drives physics step s
         self.late = [max(0, -(-(delay - s) // config.substeps)) for s in range(config.substeps)]
         plain = ArmDynamics(arm, config.gravity, "pybullet", device=device)
-        self.dynamics = ArmDynamics(
+        self.urdf = ArmDynamics(
             arm, config.gravity, "pybullet", None, stabilising_inertia(plain, config), device
         )
+        self.dynamics, self.compensation = identified or (self.urdf, 1.0)
         self.effort = torch.tensor(arm.effort, dtype=torch.float64, device=self.dynamics.device)
 
     def __call__(self, x: Tensor, u: Tensor) -> Tensor:
@@ -136,7 +141,7 @@ class ControlStep:
         frames = dyn.frames(q)
         start = dyn.points(frames).flatten(-2)  # [..., 6]
         zeros = torch.zeros_like(q)
-        gravity = dyn.inverse_dynamics_at(frames, zeros, zeros)
+        gravity = self.compensation * self.urdf.inverse_dynamics_at(frames, zeros, zeros)
         driving = sorted(set(self.late))
         tau = {
             j: torch.minimum(
@@ -147,7 +152,8 @@ class ControlStep:
         if jacobian:
             eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device).expand(*q.shape, -1)
             none = torch.zeros_like(eye)
-            gravity_q = dyn.inverse_dynamics_derivatives(frames, zeros, zeros)[0]
+            gravity_q = self.urdf.inverse_dynamics_derivatives(frames, zeros, zeros)[0]
+            gravity_q = self.compensation * gravity_q
             n_commands = commands.shape[-2]
             d_tau = {}
             for j in driving:
