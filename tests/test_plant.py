@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import dataclasses
+import json
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,7 +17,7 @@ from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
-from lolgps_torch.task import TaskConfig
+from lolgps_torch.task import TaskConfig, task_config_from_dict
 
 KUKA = "robots/kuka_peg.urdf"
 FAR = (0.0, 2.0, -1.0)  # a hole out of the arm's way
@@ -192,3 +195,15 @@ def test_the_model_knows_the_delay(arm: ArmSpec, worlds: list[PegWorld]) -> None
     torch.testing.assert_close(
         (F @ xu[..., None]).squeeze(-1) + f0, step(states[3:5], actions[3:5])
     )
+
+
+def test_the_plant_is_saved_with_the_task() -> None:
+    """config.json's task (``asdict``) reads back with its plant, for evaluate.py and render.py."""
+    task = TaskConfig(urdf=KUKA, plant=PlantConfig(payload=1.0, gravity_compensation="none"))
+    assert task_config_from_dict(json.loads(json.dumps(dataclasses.asdict(task)))) == task
+
+
+def test_a_bad_plant_flag_is_one_error_line(run_script: Callable[..., Any]) -> None:
+    run = run_script("scripts/run_stream.py", "--plant-inertia-scale", "1.5", "--out", "/x/y")
+    assert run.code == 2
+    assert run.err.strip() == "error: --plant-inertia-scale must be in [0, 1), got 1.5"
