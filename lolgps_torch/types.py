@@ -148,3 +148,23 @@ class ConditionSamples(NamedTuple):
             prec_pre=self.prec_pre.reshape(M * T, dU, dU),
             has_pre=self.has_pre.repeat_interleave(T),
         )
+
+
+class VisitedRows(NamedTuple):
+    """States the global policy visited, labelled by a learnt condition's controllers: the
+    S-step rows, and for each row the condition whose controllers labelled it and its time
+    step, ``[R]`` each (integers)."""
+
+    rows: DistillBatch
+    condition: Tensor
+    t: Tensor
+
+    @property
+    def R(self) -> int:
+        return int(self.condition.shape[0])
+
+    @classmethod
+    def cat(cls, parts: list[VisitedRows]) -> VisitedRows:
+        """The rows of ``parts``, one after another (at least one part)."""
+        rows = DistillBatch(*(torch.cat(f) for f in zip(*(p.rows for p in parts), strict=True)))
+        return cls(rows, torch.cat([p.condition for p in parts]), torch.cat([p.t for p in parts]))

@@ -33,7 +33,7 @@ from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import PegTask, TaskConfig, task_config_from_dict
-from lolgps_torch.types import ConditionSamples, Trajectories
+from lolgps_torch.types import ConditionSamples, DistillBatch, Trajectories, VisitedRows
 
 F64 = torch.float64
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,8 +83,18 @@ def make_run(folder: Path, T: int, counts: list[int]) -> Path:
     replay = ReplayBuffer(folder / "replay.h5")
     for index, M in enumerate(counts):
         samples = make_samples(M, T, has_pre=index > 0, seed=index)
-        replay.append_condition(index, OFFSETS[index], samples, iterations=5 + index)
+        replay.append_condition(
+            index, OFFSETS[index], samples, iterations=5 + index, visited=visited_rows(samples)
+        )
     return folder
+
+
+def visited_rows(samples: ConditionSamples) -> VisitedRows:
+    """Labelled states as an S-step's visits store them: here, the samples' last step."""
+    last = (samples.x, samples.mean_cur, samples.prec_cur, samples.mean_pre, samples.prec_pre)
+    batch = DistillBatch(*(f[:, -1] for f in last), has_pre=samples.has_pre)
+    M, T = samples.x.shape[:2]
+    return VisitedRows(batch, torch.zeros(M, dtype=torch.int64), torch.full((M,), T - 1))
 
 
 @pytest.fixture(scope="module")
@@ -154,6 +164,18 @@ def test_round_trip_gives_the_replay(run_dir: Path, exported: Path) -> None:
     mouth = np.array(meta["arm"]["nominal_hole_mouth"])
     for c in meta["conditions"]:
         assert np.allclose(c["hole_mouth"], mouth + [*c["hole_offset"], 0.0])
+
+
+def test_the_visited_states_are_exported(run_dir: Path, exported: Path) -> None:
+    replay = ReplayBuffer(run_dir / "replay.h5")
+    stored = [replay.read_condition(i).visited for i in replay.conditions()]
+    with h5py.File(exported, "r") as f:
+        group = f["visited"]
+        assert group["states"].shape[0] == sum(v.R for v in stored if v is not None)
+        want = torch.cat([v.rows.prec_cur for v in stored if v is not None])
+        assert torch.equal(torch.from_numpy(group["prec_cur"][()]), want)
+        assert set(group) == {"states", "mean_cur", "prec_cur", "mean_pre", "prec_pre",
+                              "has_pre", "condition", "t"}  # fmt: skip
 
 
 def test_load_filters_by_condition_and_success(exported: Path) -> None:

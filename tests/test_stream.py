@@ -19,7 +19,8 @@ from conftest import ScriptRun, ci_stream_command, finish_script, start_script
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
-from lolgps_torch.lolgps.distillation import Checked, CheckedSStep, Labels
+from lolgps_torch.lolgps.distillation import Labels
+from lolgps_torch.lolgps.onpolicy import Checked, CheckedSStep, Visit
 from lolgps_torch.lolgps.stream import Outcome, StreamLearner, Successes
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
 from lolgps_torch.types import Trajectories
@@ -126,13 +127,15 @@ def test_trace_policy_prints_rollout_and_fit_per_condition(
     assert result.code == 0, result.err[-2000:]
     lines = result.out.strip().splitlines()
     assert lines[0] == "policy after condition 1; columns: steps [0, 5]"
-    assert [line.split()[1] for line in lines[1::2]] == ["0", "1"]
+    assert [line.split()[1] for line in lines[1::3]] == ["0", "1"]
     # the rollout starts at the start pose, whose tip error at step 0 is the same for both
     # conditions up to the hole offsets (0, 0) and (0.01, -0.01): 10 mm apart in x and y
     x0, y0 = (float(v) for v in lines[1].split("mm (")[1].split(",")[:2])
-    x1, y1 = (float(v) for v in lines[3].split("mm (")[1].split(",")[:2])
+    x1, y1 = (float(v) for v in lines[4].split("mm (")[1].split(",")[:2])
     assert (x0 - x1, y0 - y1) == pytest.approx((10.0, -10.0), abs=1.0)
-    assert all(line.strip().startswith("D_g fit: ") for line in lines[2::2])
+    # every rollout, and every D_g sample, starts at the start pose: inside the support
+    assert all(line.strip().startswith("support (sd) 0.0 ") for line in lines[2::3])
+    assert all(line.strip().startswith("D_g fit: ") for line in lines[3::3])
     bad = run_script(*cmd, "--steps", "100")
     assert bad.code == 2 and bad.err.strip() == "error: --steps must lie in [0, 100), got [100]"
 
@@ -184,16 +187,20 @@ def test_default_stream_policy_succeeds_at_7_of_8(arm: str, seed: int, tmp_path:
 
 
 class _ScriptedDistiller:
-    """A scripted S-step for :class:`CheckedSStep`: it writes the round's number into the
-    policy's first bias and records its arguments."""
+    """A scripted S-step for :class:`CheckedSStep`, with one stored condition: it writes the
+    round's number into the policy's first bias and records its arguments."""
 
     config = PolicyConfig()
 
     def __init__(self) -> None:
-        self.calls: list[tuple[int, frozenset[int], int | None]] = []
+        self.calls: list[tuple[int, frozenset[int], int | None, object]] = []
 
-    def __call__(self, policy, new, seed, emphasis=frozenset(), config=None):  # type: ignore[no-untyped-def]
-        self.calls.append((seed, emphasis, config.steps if config else None))
+    def stored(self) -> list[SimpleNamespace]:
+        samples = SimpleNamespace(x=torch.zeros(1, 2, 3))
+        return [SimpleNamespace(condition=0, offset=(0.0, 0.0), samples=samples, p_cur=None)]
+
+    def __call__(self, policy, new, seed, emphasis=frozenset(), config=None, visited=None):  # type: ignore[no-untyped-def]
+        self.calls.append((seed, emphasis, config.steps if config else None, visited))
         with torch.no_grad():
             policy.net[0].bias[0] = len(self.calls) - 1
         policy.trained = True
@@ -201,34 +208,57 @@ class _ScriptedDistiller:
 
 
 def _checked(
-    distances: list[list[float]], repairs: int
+    distances: list[list[float]], repairs: int, rounds: int = 0
 ) -> tuple[Checked, _ScriptedDistiller, GaussianPolicy]:
-    """Run :class:`CheckedSStep` with scripted S-steps and closed-loop distances at the
-    replay's position and the new one."""
+    """Run :class:`CheckedSStep` with scripted S-steps and visits: closed-loop distances at
+    the replay's position and the new one, and one labelled row (a marker) per visit."""
     distill, scripted, policy = _ScriptedDistiller(), iter(distances), GaussianPolicy(3, 1)
-    sstep = CheckedSStep(distill, lambda *a: next(scripted), 0.06, repairs)  # type: ignore[arg-type]
-    item = SimpleNamespace(offset=(0.01, 0.0))
-    checked = sstep(policy, item, [(0.0, 0.0), (0.01, 0.0)], seed=5)  # type: ignore[arg-type]
-    return checked, distill, policy
+
+    def visits(policy, teachers, seed, label):  # type: ignore[no-untyped-def]
+        assert [t.offset for t in teachers] == [(0.0, 0.0), (0.01, 0.0)]
+        return Visit(next(scripted), f"rows of {seed}" if label else None, 2)
+
+    sstep = CheckedSStep(distill, visits, 0.06, rounds > 0, rounds, repairs)  # type: ignore[arg-type]
+    item = SimpleNamespace(offset=(0.01, 0.0), data=SimpleNamespace(x=torch.zeros(1, 2, 3)),
+                           labels=None)  # fmt: skip
+    return sstep(policy, item, seed=5), distill, policy  # type: ignore[arg-type]
 
 
 def test_a_missed_condition_is_repaired_with_its_rows_twice() -> None:
     checked, distill, policy = _checked([[0.001, 0.2], [0.3, 0.2], [0.001, 0.001]], repairs=3)
-    assert checked == ([3.0], [0.001, 0.001], 2)
+    assert checked == ([3.0], [0.001, 0.001], 2, None, 6)
     # the first S-step in full; repairs from the best so far, a third of the steps, the missed
     # condition (place 1: the new one, after the replay's) emphasised
     steps = PolicyConfig().steps
-    assert distill.calls == [(5, frozenset(), None), (5 + 1_000_003, frozenset({1}), steps // 3),
-                             (5 + 2_000_006, frozenset({1}), steps // 3)]  # fmt: skip
+    assert distill.calls == [(5, frozenset(), None, None),
+                             (5 + 1_000_003, frozenset({1}), steps // 3, None),
+                             (5 + 2_000_006, frozenset({1}), steps // 3, None)]  # fmt: skip
     assert float(policy.net[0].bias[0]) == 2.0  # the round that reached both is kept
 
 
 def test_without_a_better_round_the_first_policy_is_kept() -> None:
     checked, _, policy = _checked([[0.001, 0.2], [0.3, 0.2], [0.001, 0.25]], repairs=2)
-    assert checked == ([1.0], [0.001, 0.2], 2)
+    assert checked[:3] == ([1.0], [0.001, 0.2], 2)
     assert float(policy.net[0].bias[0]) == 0.0
     checked, distill, _ = _checked([[0.001, 0.2]], repairs=0)
     assert checked.rounds == 0 and len(distill.calls) == 1
+
+
+def test_onpolicy_rounds_run_and_refit_on_every_visit_so_far(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(  # the scripted rows are markers: joining them lists them
+        "lolgps_torch.lolgps.onpolicy.VisitedRows.cat", staticmethod(lambda parts: list(parts))
+    )
+    reached = [0.001, 0.001]
+    checked, distill, _ = _checked([reached, reached, reached], repairs=0, rounds=2)
+    assert checked.rounds == 2 and checked.rollouts == 6
+    assert [call[3] for call in distill.calls] == [
+        None,
+        ["rows of 5"],
+        ["rows of 5", "rows of 1000008"],
+    ]
+    assert checked.visited == ["rows of 5", "rows of 1000008", "rows of 2000011"]
 
 
 def test_retention_script_tabulates_every_checkpoint(

@@ -30,6 +30,7 @@ from lolgps_torch.robot.arm import ArmSpec, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import place_task
 from lolgps_torch.task import TaskConfig
+from lolgps_torch.types import VisitedRows
 
 FORMAT = "lolgps_torch.dataset"
 # Version 2 holds the T+1 states of each trajectory; version 1 held the first T.
@@ -84,14 +85,16 @@ class ExportReport:
 
 class RunData(NamedTuple):
     """A run folder read for export: trajectories, per-condition table, root attributes,
-    metadata groups (``arm``, ``state``, ``task``, ``cost``) and the task, its URDF an
-    absolute path (the run folder's copy where it has one)."""
+    metadata groups (``arm``, ``state``, ``task``, ``cost``), the task, its URDF an
+    absolute path (the run folder's copy where it has one), and the labelled states the
+    policy visited in its S-steps, by field (empty: none)."""
 
     trajectories: ExportedTrajectories
     conditions: dict[str, np.ndarray]
     root: dict[str, Any]
     meta: dict[str, dict[str, Any]]
     task: TaskConfig
+    visited: dict[str, np.ndarray]
 
 
 def one_line(error: BaseException) -> str:
@@ -259,4 +262,21 @@ def read_run(run_dir: str | Path) -> RunData:
         "run_summary": summary,
     }
     meta = _metadata(task, arm, mouth, geometry.q0)
-    return RunData(trajectories, _conditions(records, mouth), root, meta, task)
+    return RunData(trajectories, _conditions(records, mouth), root, meta, task, _visited(records))
+
+
+def _visited(records: list[ConditionRecord]) -> dict[str, np.ndarray]:
+    """Every condition's visited rows, in stream order, by field: ``states``, the label
+    fields, ``condition`` (whose controllers labelled the row) and ``t`` (empty: none)."""
+    parts = [r.visited for r in records if r.visited is not None]
+    if not parts:
+        return {}
+    rows = VisitedRows.cat(parts)
+    fields = {
+        "states": rows.rows.x,
+        **rows.rows._asdict(),
+        "condition": rows.condition,
+        "t": rows.t,
+    }
+    del fields["x"]
+    return {name: tensor.cpu().numpy() for name, tensor in fields.items()}

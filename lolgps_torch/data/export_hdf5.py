@@ -36,6 +36,7 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.progress import progress
 
 TRAJECTORIES = "trajectories"
+VISITED = "visited"
 # Groups whose attributes hold the metadata (the root's are written separately).
 META_GROUPS = ("arm", "state", "task", "cost")
 # Root attributes stored as JSON text.
@@ -92,6 +93,12 @@ def _write_hdf5(tmp: Path, run: RunData) -> None:
         fields = run.trajectories._asdict()
         for name in progress(fields, len(fields), "writing"):
             _write_dataset(group, name, fields[name].numpy())
+        if run.visited:
+            visited = f.create_group(VISITED)
+            for name, array in run.visited.items():
+                visited.create_dataset(
+                    name, data=array, chunks=True, compression="gzip", shuffle=True, fletcher32=True
+                )
 
 
 def export_hdf5(run_dir: str | Path, out_path: str | Path, force: bool = False) -> ExportReport:

@@ -69,7 +69,10 @@ class ConditionSummary:
     :param rollouts: rollouts drawn at the condition.
     :param failure: why local learning stopped early on a numerical failure (None: it did
         not); the condition's D_g then holds the successes before it.
-    :param repairs: S-step rounds run after the first because the policy missed a condition.
+    :param repairs: S-step rounds run after the first fit (on the policy's own states, and
+        while it missed a condition).
+    :param policy_rollouts: the global policy's rollouts in the S-step (its check and visits).
+    :param visited_rows: states the policy visited in the S-step that got a label.
     """
 
     condition: int
@@ -86,6 +89,8 @@ class ConditionSummary:
     failure: str | None = None
     rollouts: int = 0
     repairs: int = 0
+    policy_rollouts: int = 0
+    visited_rows: int = 0
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

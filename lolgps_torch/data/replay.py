@@ -11,6 +11,11 @@ and attributes ``condition`` (index), ``offset`` (hole offset dx, dy in m), ``it
 The condition's final controllers, which label states the S-step visits later (policy
 corrections), are stored with it when given: ``cur_K [T, dU, dX]``, ``cur_k [T, dU]``,
 ``cur_cov [T, dU, dU]`` for p_cur and ``pre_K``, ``pre_k``, ``pre_cov`` for p_pre.
+The states the global policy visited during the condition's S-step, labelled by the
+controllers of the condition each was visited at (docs/ALGORITHM.md section 7), are stored
+with it when there are any (R rows): ``visited_x [R, dX]``, ``visited_mean_cur [R, dU]``,
+``visited_prec_cur [R, dU, dU]``, ``visited_mean_pre [R, dU]``, ``visited_prec_pre [R, dU, dU]``,
+``visited_has_pre [R]`` (bool), ``visited_condition [R]`` and ``visited_t [R]`` (int64).
 Datasets are chunked per sample, gzip-compressed and fletcher32-checksummed, in the HDF5 1.10
 file format (whose metadata is checksummed too), so damage is reported on read rather than
 returned as data. A group is written once and never changed.
@@ -32,7 +37,7 @@ import torch
 
 from lolgps_torch.data.run_folder import atomic_write
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian
+from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian, VisitedRows
 
 FORMAT = "lolgps_torch.replay"
 VERSION = 1
@@ -49,6 +54,40 @@ class ConditionRecord(NamedTuple):
     samples: ConditionSamples
     p_cur: LinearGaussian | None = None
     p_pre: LinearGaussian | None = None
+    visited: VisitedRows | None = None
+
+
+VISITED = "visited_"
+
+
+def _visited_arrays(visited: VisitedRows | None) -> dict[str, np.ndarray]:
+    """``visited_<field>`` arrays of the rows (none for no rows)."""
+    if visited is None or visited.R == 0:
+        return {}
+    fields = {**visited.rows._asdict(), "condition": visited.condition, "t": visited.t}
+    out = {}
+    for name, tensor in fields.items():
+        kind = {"has_pre": torch.bool, "condition": torch.int64, "t": torch.int64}
+        out[VISITED + name] = tensor.detach().cpu().to(kind.get(name, torch.float64)).numpy()
+    return out
+
+
+def _read_visited(group: h5py.Group, device: torch.device | str) -> VisitedRows | None:
+    """The visited rows stored in ``group``, if any."""
+    if VISITED + "x" not in group:
+        return None
+
+    def read(name: str) -> torch.Tensor:
+        return torch.from_numpy(group[VISITED + name][()]).to(device)
+
+    rows = DistillBatch(*(read(name) for name in DistillBatch._fields))
+    return VisitedRows(rows, read("condition"), read("t"))
+
+
+def _chunks(key: str, array: np.ndarray) -> tuple[int, ...] | bool:
+    """One chunk per sample for a sample's arrays; h5py's choice for the visited rows, of
+    which there are thousands."""
+    return (1, *array.shape[1:]) if array.ndim > 1 and not key.startswith(VISITED) else True
 
 
 def _group_name(index: int) -> str:
@@ -166,6 +205,7 @@ class ReplayBuffer:
         iterations: int,
         p_cur: LinearGaussian | None = None,
         p_pre: LinearGaussian | None = None,
+        visited: VisitedRows | None = None,
     ) -> None:
         """Add condition ``index`` as a new group, atomically; refuses to overwrite one.
 
@@ -175,6 +215,7 @@ class ReplayBuffer:
         :param iterations: inner-loop iterations the condition used.
         :param p_cur: the condition's final local controller (stored when given).
         :param p_pre: its final linearised global policy (stored when given).
+        :param visited: the labelled states the policy visited in its S-step (stored when any).
         """
         if index < 0:
             raise LolgpsError(f"condition index must be >= 0, got {index}")
@@ -183,6 +224,7 @@ class ReplayBuffer:
             if controller is not None:
                 for key, tensor in zip(("K", "k", "cov"), controller, strict=True):
                     arrays[f"{prefix}_{key}"] = tensor.detach().cpu().to(torch.float64).numpy()
+        arrays.update(_visited_arrays(visited))
         name = _group_name(index)
         existing = self.path.exists()
         if existing:
@@ -205,7 +247,7 @@ class ReplayBuffer:
                     group.create_dataset(
                         key,
                         data=array,
-                        chunks=(1, *array.shape[1:]) if array.ndim > 1 else True,
+                        chunks=_chunks(key, array),
                         maxshape=(None, *array.shape[1:]),
                         compression="gzip",
                         fletcher32=True,
@@ -247,6 +289,7 @@ class ReplayBuffer:
             samples=ConditionSamples(**tensors),
             p_cur=controllers[0],
             p_pre=controllers[1],
+            visited=_read_visited(group, device),
         )
 
     def load(

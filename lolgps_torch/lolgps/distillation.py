@@ -9,24 +9,30 @@ the global policy to
 
 on the new conditions' D_g, ``augment`` kinematically consistent perturbed copies of their
 states (labelled by the same linear-Gaussian controllers, which are defined at any state), and
-the earlier conditions' D_g from the replay. :class:`CheckedSStep` checks the result in closed
-loop and repairs it while the policy misses a position learnt so far.
+the earlier conditions' D_g from the replay, with the labelled states the policy visited in
+earlier S-steps (:mod:`lolgps_torch.lolgps.onpolicy` visits them and checks the result in
+closed loop).
 """
 
 from __future__ import annotations
 
-import copy
-from collections.abc import Callable
-from dataclasses import replace
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.data.replay import ConditionRecord
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill
+from lolgps_torch.policy.guard import fit_guard
 from lolgps_torch.task import PegTask
-from lolgps_torch.types import ConditionSamples, DistillBatch, LinearGaussian, Trajectories
+from lolgps_torch.types import (
+    ConditionSamples,
+    DistillBatch,
+    LinearGaussian,
+    Trajectories,
+    VisitedRows,
+)
 
 
 class Labels(NamedTuple):
@@ -94,7 +100,7 @@ def consistent_states(task: PegTask, x: Tensor, offset: tuple[float, float]) -> 
 
 class Distiller:
     """The S-step with replay: owns nothing but the settings, the replay it reads and the
-    rows it has read from it.
+    records it has read from it.
 
     :param augment: perturbed copies of each new D_g state.
     :param augment_scale: their size, in per-step standard deviations of D_g's states (q and
@@ -112,7 +118,7 @@ class Distiller:
     ) -> None:
         self.task, self.config, self.replay = task, config, replay
         self.augment, self.augment_scale = augment, augment_scale
-        self._rows: dict[int, DistillBatch] = {}
+        self._records: dict[int, ConditionRecord] = {}
 
     def __call__(
         self,
@@ -121,40 +127,59 @@ class Distiller:
         seed: int,
         emphasis: frozenset[int] = frozenset(),
         config: PolicyConfig | None = None,
+        visited: VisitedRows | None = None,
     ) -> list[float]:
         """Fit ``policy`` on the ``new`` conditions' D_g with their perturbed copies, plus the
-        replay; returns the losses (empty when there is no data).
+        replay (its D_g and the states the policy visited in earlier S-steps) and ``visited``;
+        returns the losses (empty when there is no data).
 
-        :param emphasis: conditions whose rows enter twice, by place: ``0 .. R-1`` the replay's
-            conditions in order, ``R + i`` the ``new`` item ``i``.
+        :param emphasis: conditions whose D_g rows enter twice, by place: ``0 .. R-1`` the
+            replay's conditions in order, ``R + i`` the ``new`` item ``i``.
         :param config: the S-step's settings (default: the distiller's).
+        :param visited: labelled states the policy visited in this S-step so far.
         """
         gen = torch.Generator().manual_seed(seed)
-        stored = self._stored()
+        stored = self.stored()
         batches = []
-        for place, rows in enumerate(stored):
-            batches += [rows] * (2 if place in emphasis else 1)
+        for place, record in enumerate(stored):
+            batches += [record.samples.to_batch()] * (2 if place in emphasis else 1)
         for place, item in enumerate(new, start=len(stored)):
             own = [item.data.to_batch()]
             if item.data.x.shape[0] > 1 and self.augment > 0:
                 own.append(self._augmented(item, gen))
             batches += own * (2 if place in emphasis else 1)
+        visits = [r.visited for r in stored if r.visited is not None]
+        batches += [v.rows for v in [*visits, *([visited] if visited is not None else [])]]
         batch = DistillBatch(*(torch.cat(f) for f in zip(*batches, strict=True)))
         if batch.x.shape[0] == 0:
             return []
-        return distill(policy, batch, config or self.config, gen)
+        losses = distill(policy, batch, config or self.config, gen)
+        if self.config.guard:
+            self._set_guard(policy, [r.samples for r in stored] + [item.data for item in new])
+        return losses
 
-    def _stored(self) -> list[DistillBatch]:
-        """The replay's rows, condition by condition; each condition is read from the file
-        once (the replay only grows) and kept."""
+    def _set_guard(self, policy: GaussianPolicy, data: list[ConditionSamples]) -> None:
+        """The policy's guard from every condition's D_g (:func:`fit_guard`)."""
+        full = [d for d in data if d.final_state is not None and d.x.shape[0] > 0]
+        if not full:
+            return
+        x = torch.cat([torch.cat([d.x, d.final_state[:, None]], 1) for d in full])  # type: ignore[index]
+        u, mean_cur = torch.cat([d.u for d in full]), torch.cat([d.mean_cur for d in full])
+        cfg = self.config
+        qd = self.task.layout.qd
+        guard = fit_guard(x, u, mean_cur, qd, cfg.guard_torque, cfg.guard_speed, cfg.guard_brake)
+        policy.set_guard(guard)
+
+    def stored(self) -> list[ConditionRecord]:
+        """The replay's conditions in order; each is read from the file once (the replay only
+        grows) and kept."""
         if self.replay is None:
             return []
         conditions = self.replay.conditions()
         for index in conditions:
-            if index not in self._rows:
-                record = self.replay.read_condition(index, self.task.device)
-                self._rows[index] = record.samples.to_batch()
-        return [self._rows[index] for index in conditions]
+            if index not in self._records:
+                self._records[index] = self.replay.read_condition(index, self.task.device)
+        return [self._records[index] for index in conditions]
 
     def _augmented(self, item: Labelled, gen: torch.Generator) -> DistillBatch:
         """``augment`` copies of D_g's states, q and q-dot perturbed by ``augment_scale`` times
@@ -168,64 +193,3 @@ class Distiller:
             x_aug, x_aug[..., :0], x_aug[..., 0], x_aug[:, 0, 0], *targets(x_aug, item.labels)
         )
         return aug.to_batch()
-
-
-Offsets = list[tuple[float, float]]
-Reach = Callable[[GaussianPolicy, Offsets], list[float]]
-
-
-class Checked(NamedTuple):
-    """A checked S-step: the kept round's losses, the kept policy's final distances (m) at
-    every checked position (NaN while untrained) and the repair rounds run."""
-
-    losses: list[float]
-    distances: list[float]
-    rounds: int
-
-
-class CheckedSStep:
-    """The S-step (eq. 8), checked in closed loop, with repair rounds.
-
-    After the S-step, the policy's noiseless rollouts run at every position learnt so far
-    (``reach``). While one misses (final distance not below ``threshold``), up to ``repairs``
-    more rounds of ``steps // 3`` Adam steps run, each from the best policy so far with the
-    missed conditions' rows entering twice; the policy reaching the most positions (then the
-    smallest total distance) is kept.
-
-    :param distill: the S-step with replay.
-    :param reach: final distances of a policy's noiseless rollouts at the given positions.
-    :param threshold: the success distance (m).
-    :param repairs: the most repair rounds (0: the S-step alone, as in the paper).
-    """
-
-    def __init__(self, distill: Distiller, reach: Reach, threshold: float, repairs: int) -> None:
-        self.distill, self.reach = distill, reach
-        self.threshold, self.repairs = threshold, repairs
-
-    def __call__(
-        self, policy: GaussianPolicy, item: Labelled, offsets: Offsets, seed: int
-    ) -> Checked:
-        """Fit ``policy`` on ``item`` and the replay, check it at ``offsets`` (the replay's
-        positions, then ``item``'s) and repair it; the kept policy is left in ``policy``."""
-        losses = self.distill(policy, [item], seed)
-        if not policy.trained:
-            return Checked(losses, [float("nan")] * len(offsets), 0)
-        distances = self.reach(policy, offsets)
-        best = Checked(losses, distances, 0)
-        state = copy.deepcopy(policy.state_dict())
-        repair = replace(self.distill.config, steps=max(1, self.distill.config.steps // 3))
-        rounds = 0
-        while rounds < self.repairs and self.score(best.distances)[0] < len(offsets):
-            rounds += 1
-            policy.load_state_dict(state)
-            missed = frozenset(i for i, d in enumerate(best.distances) if not d < self.threshold)
-            losses = self.distill(policy, [item], seed + 1_000_003 * rounds, missed, repair)
-            distances = self.reach(policy, offsets)
-            if self.score(distances) > self.score(best.distances):
-                best, state = Checked(losses, distances, 0), copy.deepcopy(policy.state_dict())
-        policy.load_state_dict(state)
-        return best._replace(rounds=rounds)
-
-    def score(self, distances: list[float]) -> tuple[int, float]:
-        """Positions reached, then minus the total distance: the larger the better."""
-        return sum(d < self.threshold for d in distances), -sum(distances)

@@ -28,12 +28,20 @@ class OnCondition(Protocol):
 
 def method_config(method: str, config: StreamConfig) -> StreamConfig:
     """``config`` as ``method`` runs it: naive sequential learning has no p_pre (so alpha 0),
-    no replay and no transfer; batch GPS (no transfer either) (MDGPS) samples p_cur and anchors its C-step to the
+    no replay, no transfer and no labelled states of the policy's own; batch GPS (no transfer either) (MDGPS) samples p_cur and anchors its C-step to the
     policy's linearisation; LOLGPS takes it as it is."""
     if method not in METHODS:
         raise LolgpsError(f"method {method!r}: one of {METHODS}")
     if method == "naive":
-        return replace(config, use_pre=False, replay=False, alpha=0.0, transfer="none")
+        return replace(
+            config,
+            use_pre=False,
+            replay=False,
+            alpha=0.0,
+            transfer="none",
+            onpolicy=False,
+            onpolicy_rounds=0,
+        )
     if method == "batch":  # MDGPS: samples p_cur, C-step anchored to the policy
         return replace(
             config, alpha=0.0, alpha_schedule="constant", cstep_anchor="pre", transfer="none"

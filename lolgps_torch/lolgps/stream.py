@@ -16,7 +16,9 @@
         label D_g(m) with the final p_cur and p_pre (if its noiseless rollout misses: with
             the newest successfully sampled ones whose noiseless rollout succeeds)
         pi <- argmin KL(pi || p_cur) + lambda KL(pi || p_pre) over D_g(m) + replay D_g(<m) (eq. 8)
-              repeated from the best pi (a few times at most) while pi misses a condition <= m
+              + the states pi visits at every condition <= m, labelled by that condition's
+              p_cur and p_pre where they are valid; refitted a few rounds, and while pi misses
+              a condition <= m (a few times at most), from the best pi
 
 Naive sequential learning is the same loop without p_pre and without the replay.
 """
@@ -37,14 +39,9 @@ from lolgps_torch.data.records import ConditionSummary, DistillRecord, Iteration
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
-from lolgps_torch.lolgps.distillation import (
-    CheckedSStep,
-    Distiller,
-    Labelled,
-    Labels,
-    label,
-)
+from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate
+from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
@@ -81,9 +78,18 @@ class StreamConfig:
         the 24-condition square stream, with the same positions and test areas (4 mm
         robustness: 13 misses of 1 664 against 7); 1 lost test areas (docs/RESULTS.md
         section 24, docs/HISTORY.md section 12).
-    :param repairs: further S-step rounds while the policy's noiseless rollouts miss a
-        condition learnt so far (0: one S-step, as in the paper; 6 rather than 3 reached 69
-        instead of 67 of 72 positions on 9 runs, docs/RESULTS.md section 14.1).
+    :param repairs: the most S-step rounds while the policy's noiseless rollouts miss a
+        condition learnt so far (0 with ``onpolicy_rounds`` 0: one S-step, as in the paper).
+    :param onpolicy: label the states the policy visits at every condition learnt so far
+        after each S-step where they lie inside the teachers' support; they join the data of
+        the S-step's later rounds and of every later S-step.
+    :param onpolicy_rounds: S-step rounds always run after the first fit, each followed by a
+        visit (0: none).
+    :param onpolicy_noisy: rollouts with the policy's own noise per condition and visit,
+        besides the noiseless one.
+    :param onpolicy_gate: the teachers' support, in standard deviations of D_g's states.
+    :param onpolicy_floor: the smallest standard deviation of a joint angle in the support
+        (rad; the joint velocities': 10 times as much, rad/s).
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -100,6 +106,11 @@ class StreamConfig:
     transfer: Transfer = "policy"
     transfer_phases: int = 2
     repairs: int = 6
+    onpolicy: bool = True
+    onpolicy_rounds: int = 2
+    onpolicy_noisy: int = 2
+    onpolicy_gate: float = 3.0
+    onpolicy_floor: float = 0.005
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -123,6 +134,10 @@ class StreamConfig:
                 "augment_scale": 0.0 <= self.augment_scale < float("inf"),
                 "max_iterations": self.max_iterations >= 1,
                 "repairs": self.repairs >= 0,
+                "onpolicy_rounds": self.onpolicy_rounds >= 0,
+                "onpolicy_noisy": self.onpolicy_noisy >= 0,
+                "onpolicy_gate": 0.0 < self.onpolicy_gate < float("inf"),
+                "onpolicy_floor": 0.0 < self.onpolicy_floor < float("inf"),
                 "transfer_phases": self.transfer_phases >= 1,
                 "seed": self.seed >= 0,
             },
@@ -175,12 +190,7 @@ class StreamLearner:
             config.augment_scale,
             self.replay if config.replay else None,
         )
-        self.sstep = CheckedSStep(
-            distill,
-            lambda policy, offsets: policy_distances(task, policy, offsets),
-            self.threshold,
-            config.repairs,
-        )
+        self.sstep = checked_sstep(task, config, distill)
 
     def learn_condition(self, index: int, offset: tuple[float, float]) -> ConditionSummary:
         """One condition of Algorithm 2: local learning, D_g and the S-step with replay;
@@ -194,8 +204,7 @@ class StreamLearner:
         labels, local = self.teacher(outcome, offset)  # D_g is labelled here
         data = label(self.task, outcome.found.kept, labels)
         t0 = time.perf_counter()
-        offsets = [*(self.replay.offsets() if self.config.replay else []), offset]
-        checked = self.sstep(self.policy, Labelled(offset, data, labels), offsets, seed)
+        checked = self.sstep(self.policy, Labelled(offset, data, labels), seed)
         losses, after, repairs = checked.losses, checked.distances[-1], checked.rounds
         rows = int(data.x.shape[0]) * self.task.T
         self.log(DistillRecord(index, time.perf_counter() - t0, rows, repairs=repairs))
@@ -214,12 +223,14 @@ class StreamLearner:
             failure=failure,
             rollouts=outcome.rollouts,
             repairs=repairs,
+            policy_rollouts=checked.rollouts,
+            visited_rows=0 if checked.visited is None else checked.visited.R,
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
         self.folder.write_entry(index, entry.to_json())
         self.replay.append_condition(
-            index, offset, data, final.iteration, labels.p_cur, labels.p_pre
+            index, offset, data, final.iteration, labels.p_cur, labels.p_pre, checked.visited
         )
         return entry
 
@@ -336,6 +347,16 @@ class StreamLearner:
         if done > 0:
             self.policy = load_policy(self.folder.checkpoint_dir(done - 1), self.task.device)
         return [ConditionSummary.from_json(self.folder.read_entry(i)) for i in range(done)]
+
+
+def checked_sstep(task: PegTask, config: StreamConfig, distill: Distiller) -> CheckedSStep:
+    """The S-step ``distill``, on the policy's own states and checked in closed loop, with
+    the stream's settings."""
+    visits = PolicyVisits(task, config.onpolicy_noisy, config.onpolicy_gate, config.onpolicy_floor)
+    threshold = task.config.world.success_threshold
+    return CheckedSStep(
+        distill, visits, threshold, config.onpolicy, config.onpolicy_rounds, config.repairs
+    )
 
 
 def condition_seed(config: StreamConfig, index: int) -> int:

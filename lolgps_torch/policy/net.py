@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError, check_fields
+from lolgps_torch.policy.guard import Guard
 
 AdamDtype = Literal["float32", "float64"]
 
@@ -39,6 +40,13 @@ class PolicyConfig:
         each parallel region waits for a descheduled thread: with 2 threads on 2 loaded cores a
         step took ~20x longer than with 1.
     :param feedback: the gain head, ``mu = a(h) + B(h) z`` (off: the plain MLP ``a(h)``).
+    :param guard: bound the acting policy by its data (:mod:`lolgps_torch.policy.guard`):
+        torques within ``guard_torque`` times the largest teacher torque per joint, and a
+        brake taking ``guard_brake`` of the joint speeds away per step once a joint passes
+        ``guard_speed`` times the largest speed in D_g.
+    :param guard_torque: the torque bound, in largest teacher torques.
+    :param guard_speed: the speed that trips the brake, in largest D_g speeds.
+    :param guard_brake: the brake's share of the joint speeds taken away per control step.
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
         scaled targets); the policy itself stays float64. float32 takes a third less loop
         time and reached as many positions over 38 paired runs, but fewer on the published
@@ -56,6 +64,10 @@ class PolicyConfig:
     num_threads: int | None = 1
     feedback: bool = True
     adam_dtype: AdamDtype = "float64"
+    guard: bool = True
+    guard_torque: float = 1.3
+    guard_speed: float = 1.2
+    guard_brake: float = 0.5
 
     def __post_init__(self) -> None:
         check_fields(
@@ -70,6 +82,9 @@ class PolicyConfig:
                 "pre_weight": 0.0 <= self.pre_weight < math.inf,
                 "num_threads": self.num_threads is None or self.num_threads >= 1,
                 "adam_dtype": self.adam_dtype in get_args(AdamDtype),
+                "guard_torque": 0.0 < self.guard_torque < math.inf,
+                "guard_speed": 0.0 < self.guard_speed < math.inf,
+                "guard_brake": 0.0 < self.guard_brake <= 1.0,
             },
         )
 
@@ -113,6 +128,9 @@ class GaussianPolicy(torch.nn.Module):
     u_scale: Tensor
     variance: Tensor
     trained_flag: Tensor
+    guard_torque: Tensor
+    guard_speed: Tensor
+    guard_brake: Tensor
 
     def __init__(
         self,
@@ -136,6 +154,10 @@ class GaussianPolicy(torch.nn.Module):
         self.register_buffer("u_scale", torch.ones(dU, dtype=torch.float64))
         self.register_buffer("variance", torch.ones(dU, dtype=torch.float64))  # diag(Sigma_pi)
         self.register_buffer("trained_flag", torch.zeros((), dtype=torch.bool))
+        off = Guard.off(dU)
+        self.register_buffer("guard_torque", off.torque)
+        self.register_buffer("guard_speed", off.speed)
+        self.register_buffer("guard_brake", off.brake)
         self.to(device)
 
     def forward(self, x: Tensor) -> Tensor:
@@ -151,6 +173,18 @@ class GaussianPolicy(torch.nn.Module):
         h = self.net[:-1](z)
         gain = self.gain(h).unflatten(-1, (self.dU, self.dX))
         return self.net[-1](h) + (gain * z.unsqueeze(-2)).sum(-1)
+
+    @property
+    def guard(self) -> Guard:
+        """The bounds the acting policy keeps to (off until an S-step sets them)."""
+        return Guard(self.guard_torque, self.guard_speed, self.guard_brake)
+
+    @torch.no_grad()
+    def set_guard(self, guard: Guard) -> None:
+        """Set the acting policy's bounds."""
+        self.guard_torque.copy_(guard.torque)
+        self.guard_speed.copy_(guard.speed)
+        self.guard_brake.copy_(guard.brake)
 
     def covariance(self) -> Tensor:
         """``Sigma_pi = diag(sigma^2)``, ``[dU, dU]``."""
@@ -212,6 +246,9 @@ class GaussianPolicy(torch.nn.Module):
             # checkpoints from before the output scaling: scale 1, offset 0 is the same policy
             state = {"u_mean": policy.u_mean, "u_scale": policy.u_scale, **state}
             state = {"gain.weight": policy.gain.weight, "gain.bias": policy.gain.bias, **state}
+            # checkpoints from before the guard: unguarded
+            state = {**{k: v for k, v in policy.state_dict().items() if k.startswith("guard_")},
+                     **state}  # fmt: skip
             policy.load_state_dict(state)
         except (KeyError, TypeError, ValueError, RuntimeError) as error:
             text = str(error).strip()

@@ -2,13 +2,15 @@
 
     python scripts/research/restream.py --run DIR [--steps N] [--batch-size B] [--lr LR]
                                         [--adam-dtype float32] [--repairs R] [--seed S]
-                                        [--jitter MM]
+                                        [--onpolicy] [--onpolicy-rounds R] [--onpolicy-noisy N]
+                                        [--onpolicy-gate G] [--jitter MM]
 
 Local learning is not repeated: condition ``k``'s D_g (its stored samples and controllers)
 is distilled into the policy of the S-step of ``k - 1`` with the replay of ``0 .. k-1``, as
 the stream does (:class:`CheckedSStep`: the S-step with its perturbed copies and replay, the
-closed-loop check at the positions learnt so far, ``--repairs`` repair rounds). The labels'
-p_pre are those the original stream's policy gave. Prints, per condition, the positions the
+closed-loop check at the positions learnt so far, ``--onpolicy-rounds`` rounds on the states
+the policy visits and up to ``--repairs`` while it misses). The labels' p_pre are those the
+original stream's policy gave. Prints, per condition, the positions the
 policy reaches after its S-step, the repair rounds and the CPU seconds of the checked S-step;
 then the final policy's distances at every position and its fit on D_g in teacher standard
 deviations (``scripts/research/precision.py``'s ``fit``), its slope fit (the error of its
@@ -34,15 +36,14 @@ from lolgps_torch.data import ConditionRecord, ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.retention import fit_by_window
-from lolgps_torch.lolgps.distillation import (
-    CheckedSStep,
-    Distiller,
-    Labelled,
-    Labels,
-    consistent_states,
-)
+from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, consistent_states
 from lolgps_torch.lolgps.run import load_run
-from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, policy_distances
+from lolgps_torch.lolgps.stream import (
+    StreamConfig,
+    checked_sstep,
+    condition_seed,
+    policy_distances,
+)
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
 from lolgps_torch.task import PegTask
@@ -61,6 +62,15 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--lr", type=float, default=d.policy.learning_rate)
     parser.add_argument("--adam-dtype", choices=("float32", "float64"), default=d.policy.adam_dtype)
     parser.add_argument("--repairs", type=int, default=d.repairs, help="(%(default)s)")
+    parser.add_argument(
+        "--onpolicy-rounds", type=int, default=d.onpolicy_rounds, help="(%(default)s)"
+    )
+    parser.add_argument(
+        "--onpolicy-noisy", type=int, default=d.onpolicy_noisy, help="(%(default)s)"
+    )
+    parser.add_argument(
+        "--onpolicy-gate", type=float, default=d.onpolicy_gate, help="(%(default)s)"
+    )
     parser.add_argument("--jitter", type=float, default=4.0, help="mm (%(default)s)")
     parser.add_argument(
         "--seed",
@@ -69,8 +79,8 @@ def parse_args() -> argparse.Namespace:
         help="seed of the net and the S-steps (default: the run's)",
     )
     args = parser.parse_args()
-    if min(args.steps, args.batch_size) < 1 or args.repairs < 0:
-        raise LolgpsError("--steps and --batch-size must be positive, --repairs >= 0")
+    if min(args.steps, args.batch_size) < 1 or min(args.repairs, args.onpolicy_rounds) < 0:
+        raise LolgpsError("--steps and --batch-size must be positive, the rounds >= 0")
     return args
 
 
@@ -79,7 +89,16 @@ def main() -> None:
     loaded = load_run(args.run)
     run = loaded.info.stream
     seed = run.seed if args.seed is None else args.seed
-    stream = StreamConfig(augment=run.augment, augment_scale=run.augment_scale, seed=seed)
+    stream = StreamConfig(
+        augment=run.augment,
+        augment_scale=run.augment_scale,
+        seed=seed,
+        repairs=args.repairs,
+        onpolicy=args.onpolicy,
+        onpolicy_rounds=args.onpolicy_rounds,
+        onpolicy_noisy=args.onpolicy_noisy,
+        onpolicy_gate=args.onpolicy_gate,
+    )
     adam_dtype: AdamDtype = args.adam_dtype
     config = replace(
         stream.policy,
@@ -99,25 +118,29 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             replay = ReplayBuffer(RunFolder(tmp).replay_path)
             distill = Distiller(task, config, stream.augment, stream.augment_scale, replay)
-            sstep = CheckedSStep(
-                distill, lambda p, o: policy_distances(task, p, o), threshold, args.repairs
-            )
+            sstep = checked_sstep(task, stream, distill)
             for k, record in enumerate(loaded.records):
                 if record.p_cur is None:
                     raise LolgpsError(f"condition {k} was labelled by the policy: not supported")
                 labels = Labels(record.p_cur, record.p_pre, record.iterations)
                 item = Labelled(record.offset, record.samples, labels)
                 start = time.process_time()
-                checked = sstep(policy, item, offsets[: k + 1], condition_seed(stream, k))
+                checked = sstep(policy, item, condition_seed(stream, k))
                 seconds = time.process_time() - start
                 total += seconds
                 reached = sum(d < threshold for d in checked.distances)
                 print(
-                    f"condition {k}: reaches {reached}/{k + 1} after {checked.rounds} repair "
+                    f"condition {k}: reaches {reached}/{k + 1} after {checked.rounds} more "
                     f"rounds, {seconds:.1f} CPU s"
                 )
                 replay.append_condition(
-                    k, record.offset, record.samples, record.iterations, record.p_cur, record.p_pre
+                    k,
+                    record.offset,
+                    record.samples,
+                    record.iterations,
+                    record.p_cur,
+                    record.p_pre,
+                    checked.visited,
                 )
         final = policy_distances(task, policy, offsets)
         j = args.jitter / 1000.0

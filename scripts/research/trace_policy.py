@@ -14,11 +14,18 @@ For each condition in DIR/replay.h5 it prints two lines:
   (the S-step's own measure), where ``mu_cur``, ``P_cur`` are the stored distillation targets.
   It tells an under-fitted S-step (large on D_g) from a policy that fits D_g but drifts off it.
 
+- ``support``: at the same steps, how far the rollout's state is from the nearest training
+  condition's support, ``min_m g_t(x)`` in D_g(m)'s standard deviations (the gate of the
+  S-step's visited states, :mod:`lolgps_torch.lolgps.onpolicy`), and over the whole rollout
+  the peak joint speed over the joint's velocity limit and the peak torque over the largest
+  torque in every D_g. It tells a policy that leaves its data early from one that drifts late,
+  and shows what the arm does where it misses.
+
 ``--checkpoint`` picks the policy saved after that condition (default: the last).
 
 ``--area-misses K`` instead traces the test positions of area K in DIR/eval.json (written by
 ``scripts/evaluate.py``) that the last stage's policy missed, with their distance to the
-nearest training position: one ``rollout`` line each, no D_g fit.
+nearest training position: a ``rollout`` and a ``support`` line each, no D_g fit.
 """
 
 from __future__ import annotations
@@ -34,8 +41,11 @@ from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import read_evaluation
 from lolgps_torch.evaluation.retention import fit_error
+from lolgps_torch.lolgps.onpolicy import Teacher, support_distance
 from lolgps_torch.lolgps.run import LoadedRun, load_run
 from lolgps_torch.policy import GaussianPolicy, policy_actor
+from lolgps_torch.state import StateLayout
+from lolgps_torch.types import Trajectories
 
 
 def parse_args() -> argparse.Namespace:
@@ -70,13 +80,16 @@ def main() -> None:
     last = loaded.records[-1].condition if args.checkpoint is None else args.checkpoint
     policy = loaded.policy(last)
     offsets = [r.offset for r in loaded.records]
-    errors, finals = _tip_errors(loaded, policy, offsets, args.steps)
+    rollouts, speeds = _rollouts(loaded, policy, offsets)
+    errors, finals = _tip_errors(rollouts, args.steps), rollouts.final_distance.tolist()
+    support = _support_lines(loaded, rollouts, speeds, args.steps)
     print(f"policy after condition {last}; columns: steps {args.steps}")
     for i, record in enumerate(loaded.records):
         print(
             f"condition {record.condition} ({record.offset[0]:+.3f}, {record.offset[1]:+.3f}) "
             f"rollout tip error mm {_cells(errors[i])} final {finals[i]:.3f} m"
         )
+        print("    " + support[i])
         samples = record.samples
         if samples.x.shape[0] == 0:
             print("    D_g fit: no stored successes")
@@ -110,22 +123,56 @@ def _fit_line(
     )
 
 
-def _tip_errors(
-    loaded: LoadedRun,
-    policy: GaussianPolicy,
-    offsets: list[tuple[float, float]],
-    steps: list[int],
-) -> tuple[torch.Tensor, list[float]]:
-    """The policy's noiseless rollouts at ``offsets``: the tip error ``p_tip - p*_tip`` (mm)
-    at ``steps``, ``[len(offsets), len(steps), 3]``, and the final distances (m)."""
+def _rollouts(
+    loaded: LoadedRun, policy: GaussianPolicy, offsets: list[tuple[float, float]]
+) -> tuple[Trajectories, torch.Tensor]:
+    """The policy's noiseless rollouts at ``offsets``, and each one's peak joint speed over
+    the joint's velocity limit ``[len(offsets)]``."""
     task = loaded.make_task()
     try:
         rollouts = task.sample(policy_actor(policy), offsets)
     finally:
         task.close()
-    tip = task.layout.points.start
-    errors = rollouts.x[:, torch.tensor(steps), tip : tip + 3] * 1000.0
-    return errors, rollouts.final_distance.tolist()
+    limits = torch.tensor(task.arm.velocity, dtype=torch.float64)
+    speeds = (rollouts.x[..., task.layout.qd].abs() / limits).amax(dim=(1, 2))
+    return rollouts, speeds
+
+
+def _tip_errors(rollouts: Trajectories, steps: list[int]) -> torch.Tensor:
+    """The tip error ``p_tip - p*_tip`` (mm) of ``rollouts`` at ``steps``,
+    ``[N, len(steps), 3]``."""
+    tip = StateLayout((rollouts.x.shape[-1] - 12) // 2).points.start
+    return rollouts.x[:, torch.tensor(steps), tip : tip + 3] * 1000.0
+
+
+def _support_lines(
+    loaded: LoadedRun, rollouts: Trajectories, speeds: torch.Tensor, steps: list[int]
+) -> list[str]:
+    """Per rollout: its distance to the nearest training condition's support at ``steps``
+    (D_g standard deviations), its peak speed over the limits and its peak torque over the
+    largest in every D_g."""
+    n = (rollouts.x.shape[-1] - 12) // 2
+    layout = StateLayout(n)
+    stream = loaded.info.stream
+    floor = torch.zeros(layout.dX, dtype=torch.float64)
+    floor[layout.q], floor[layout.qd] = stream.onpolicy_floor, 10.0 * stream.onpolicy_floor
+    kept = [r for r in loaded.records if r.samples.x.shape[0] > 0]
+    nearest = torch.stack(
+        [
+            support_distance(rollouts.x, Teacher.of(r.condition, r.offset, r.samples.x, None),
+                             layout, floor)
+            for r in kept
+        ]
+    ).amin(0)  # fmt: skip
+    largest = torch.cat([r.samples.u.abs().flatten(0, 1) for r in kept]).amax(0)  # [dU]
+    torque = (rollouts.u.abs() / largest).amax(dim=(1, 2))
+    at = torch.tensor(steps)
+    return [
+        "support (sd) "
+        + " ".join(f"{v:.1f}" for v in nearest[i, at].tolist())
+        + f"; peak speed {speeds[i]:.2f} of the limit, peak torque {torque[i]:.2f} of D_g's"
+        for i in range(rollouts.N)
+    ]
 
 
 def _cells(error_mm: torch.Tensor) -> str:
@@ -149,7 +196,9 @@ def trace_area_misses(loaded: LoadedRun, area: int, steps: list[int]) -> None:
     if not misses:
         return
     policy = load_policy(folder.path / stage["checkpoint"])
-    errors, final = _tip_errors(loaded, policy, misses, steps)
+    rollouts, speeds = _rollouts(loaded, policy, misses)
+    errors, final = _tip_errors(rollouts, steps), rollouts.final_distance.tolist()
+    support = _support_lines(loaded, rollouts, speeds, steps)
     print(f"columns: steps {steps}")
     for i, (dx, dy) in enumerate(misses):
         nearest = min(math.dist((dx, dy), t) for t in training) * 1000.0
@@ -157,6 +206,7 @@ def trace_area_misses(loaded: LoadedRun, area: int, steps: list[int]) -> None:
             f"({dx:+.3f}, {dy:+.3f}), {nearest:.0f} mm from a training position: rollout tip "
             f"error mm {_cells(errors[i])} final {final[i]:.3f} m"
         )
+        print("    " + support[i])
 
 
 if __name__ == "__main__":

@@ -1,0 +1,75 @@
+"""The policy's guard: bounds and brake fitted to a known system, its latch in the actor, and
+its round trip through a checkpoint."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import torch
+
+from lolgps_torch.data.checkpoint import load_policy, save_policy
+from lolgps_torch.policy import GaussianPolicy, policy_actor
+from lolgps_torch.policy.guard import Guard, fit_guard, guarded
+from lolgps_torch.state import StateLayout
+
+F64 = torch.float64
+LAYOUT = StateLayout(2)
+
+
+def _known_system(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rollouts of ``q-dot_{t+1} = q-dot_t + B u_t + c`` with a known coupled ``B``."""
+    g = torch.Generator().manual_seed(seed)
+    B = torch.tensor([[0.5, 0.1], [0.1, 2.0]], dtype=F64)
+    u = torch.randn(6, 20, 2, dtype=F64, generator=g)
+    x = torch.zeros(6, 21, LAYOUT.dX, dtype=F64)
+    for t in range(20):
+        x[:, t + 1, LAYOUT.qd] = x[:, t, LAYOUT.qd] + u[:, t] @ B.T + 0.01
+    return x, u, B
+
+
+def test_the_brake_inverts_the_fitted_response() -> None:
+    x, u, B = _known_system()
+    guard = fit_guard(x, u, 2.0 * u, LAYOUT.qd, 1.3, 1.2, 0.5)
+    assert torch.allclose(guard.brake, -0.5 * torch.linalg.inv(B), atol=1e-9)
+    assert torch.allclose(guard.torque, 1.3 * 2.0 * u.abs().amax((0, 1)))
+    assert torch.allclose(guard.speed, 1.2 * x[..., LAYOUT.qd].abs().amax((0, 1)))
+    # the brake takes half the speed away in one step of the known system
+    qd = torch.tensor([[0.3, -0.2]], dtype=F64)
+    assert torch.allclose(qd + (qd @ guard.brake.T) @ B.T, 0.5 * qd)
+
+
+def test_the_guard_bounds_torques_and_brakes_once_tripped() -> None:
+    guard = Guard(
+        torch.tensor([1.0, 2.0], dtype=F64),
+        torch.tensor([1.0, 1.0], dtype=F64),
+        -torch.eye(2, dtype=F64),
+    )
+    u = torch.tensor([[5.0, -5.0], [0.5, 0.5], [0.5, 0.5]], dtype=F64)
+    qd = torch.tensor([[0.0, 0.0], [0.5, 1.5], [0.5, 0.5]], dtype=F64)
+    before = torch.tensor([False, False, True])
+    out, tripped = guarded(u, qd, guard, before)
+    assert tripped.tolist() == [False, True, True]  # a speed past its bound, or tripped before
+    assert out.tolist() == [[1.0, -2.0], [-0.5, -1.5], [-0.5, -0.5]]
+    assert torch.equal(guarded(u, qd, Guard.off(2), torch.zeros(3, dtype=torch.bool))[0], u)
+
+
+def test_the_actor_latches_per_rollout_and_resets_at_the_start(tmp_path: Path) -> None:
+    policy = GaussianPolicy(LAYOUT.dX, LAYOUT.dU)
+    policy.set_guard(Guard(torch.full((2,), 1e6, dtype=F64), torch.ones(2, dtype=F64),
+                           -torch.eye(2, dtype=F64)))  # fmt: skip
+    actor = policy_actor(policy)
+    fast = torch.zeros(2, LAYOUT.dX, dtype=F64)
+    fast[0, LAYOUT.qd] = 3.0  # rollout 0 trips the brake, rollout 1 does not
+    slow = torch.zeros(2, LAYOUT.dX, dtype=F64)
+    actor(0, fast, slice(0, 2))
+    held = actor(1, slow, slice(0, 2))
+    assert torch.equal(held[0], torch.zeros(2, dtype=F64))  # braking at rest: no torque
+    assert not torch.equal(held[1], held[0])  # the other rollout still acts
+    assert not actor(0, slow, slice(0, 2))[0].eq(0).all()  # a new rollout starts untripped
+    # the actor crosses to worker processes, and the guard is saved with the policy
+    assert isinstance(pickle.loads(pickle.dumps(actor)), type(actor))
+    save_policy(tmp_path, policy)
+    loaded = load_policy(tmp_path)
+    for a, b in zip(loaded.guard, policy.guard, strict=True):
+        assert torch.equal(a, b)
