@@ -25,6 +25,7 @@ from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.replay import ConditionRecord
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill
 from lolgps_torch.policy.guard import fit_guard
+from lolgps_torch.policy.sstep import intra_op_threads
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import (
     ConditionSamples,
@@ -163,11 +164,14 @@ class Distiller:
         full = [d for d in data if d.final_state is not None and d.x.shape[0] > 0]
         if not full:
             return
-        x = torch.cat([torch.cat([d.x, d.final_state[:, None]], 1) for d in full])  # type: ignore[index]
+        x = torch.cat([torch.cat([d.x, d.final_state[:, None]], 1) for d in full])  # type: ignore[index]  # final_state checked above
         u, mean_cur = torch.cat([d.u for d in full]), torch.cat([d.mean_cur for d in full])
         cfg = self.config
-        qd = self.task.layout.qd
-        guard = fit_guard(x, u, mean_cur, qd, cfg.guard_torque, cfg.guard_speed, cfg.guard_brake)
+        with intra_op_threads(cfg.num_threads):  # as the S-step: the same bits in any process
+            guard = fit_guard(
+                x, u, mean_cur, self.task.layout.qd, cfg.guard_torque, cfg.guard_speed,
+                cfg.guard_brake,
+            )  # fmt: skip
         policy.set_guard(guard)
 
     def stored(self) -> list[ConditionRecord]:

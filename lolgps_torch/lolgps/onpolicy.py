@@ -60,9 +60,8 @@ class Teacher(NamedTuple):
 def support_distance(x: Tensor, teacher: Teacher, layout: StateLayout, floor: Tensor) -> Tensor:
     """``g_t(x)`` of the module docstring for states ``x: [N, T, dX]`` -> ``[N, T]``;
     ``floor: [dX]`` the smallest standard deviation per state entry."""
-    joints = torch.cat([torch.arange(s.start, s.stop) for s in (layout.q, layout.qd)]).to(x.device)
     z = (x - teacher.mean) / teacher.std.maximum(floor)
-    return z[..., joints].square().mean(-1).sqrt()
+    return z[..., layout.q.start : layout.qd.stop].square().mean(-1).sqrt()  # q, q-dot
 
 
 def gated_rows(

@@ -56,11 +56,14 @@ def fit_guard(
     speeds = x[..., qd]  # [M, T+1, n]
     change = (speeds[:, 1:] - speeds[:, :-1]).flatten(0, 1)  # [M T, n]
     actions = u.flatten(0, 1)
-    design = torch.cat([actions, torch.ones_like(actions[:, :1])], dim=1)
-    B = torch.linalg.lstsq(design, change).solution[:-1].T  # [n, dU]
+    design = torch.cat([actions, torch.ones_like(actions[:, :1])], dim=1)  # [M T, dU + 1]
+    # least squares by the normal equations, a (dU + 1)-sized solve: the same bits in every
+    # process (LAPACK's least-squares and SVD drivers are not)
+    solution = torch.linalg.solve(design.T @ design, design.T @ change)  # [dU + 1, n]
+    B = solution[:-1].T  # [n, dU]
     torque = torque_margin * mean_cur.abs().flatten(0, 1).amax(0)
     speed = speed_margin * speeds.abs().flatten(0, 1).amax(0)
-    return Guard(torque, speed, -beta * torch.linalg.pinv(B))
+    return Guard(torque, speed, -beta * torch.linalg.inv(B))
 
 
 def guarded(u: Tensor, qd: Tensor, guard: Guard, tripped: Tensor) -> tuple[Tensor, Tensor]:

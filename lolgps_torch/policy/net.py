@@ -66,7 +66,7 @@ class PolicyConfig:
     adam_dtype: AdamDtype = "float64"
     guard: bool = True
     guard_torque: float = 1.3
-    guard_speed: float = 1.2
+    guard_speed: float = 1.5
     guard_brake: float = 0.5
 
     def __post_init__(self) -> None:

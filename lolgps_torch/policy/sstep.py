@@ -147,7 +147,7 @@ def set_statistics(policy: GaussianPolicy, batch: DistillBatch, pre_weight: floa
 
 
 @contextmanager
-def _intra_op_threads(n: int | None) -> Iterator[None]:
+def intra_op_threads(n: int | None) -> Iterator[None]:
     """Run the body with ``n`` torch intra-op threads (None: unchanged), then restore."""
     previous = torch.get_num_threads()
     if n is not None:
@@ -285,7 +285,7 @@ def distill(
     trainee = copy.deepcopy(policy).to(dtype)
     weights: list[Tensor] = [w for w in trainee.parameters() if w.requires_grad]
     moments = AdamMoments.zeros(weights)
-    with _intra_op_threads(config.num_threads):
+    with intra_op_threads(config.num_threads):
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)  # checks P
             rows = _loop_rows(policy, batch, config.pre_weight, dtype)
