@@ -21,16 +21,13 @@ from lolgps_torch.data.replay import ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder, portable_urdf, task_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.render import (
-    BACKGROUND,
-    BARE_ARM,
     RenderConfig,
-    Scene,
-    camera_for,
     frame_count,
     parse_conditions,
     record_clips,
     render_clips,
 )
+from lolgps_torch.evaluation.scene import BACKGROUND, BARE_ARM, Scene, camera_for
 from lolgps_torch.lolgps.run import LoadedRun, load_run
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.net import GaussianPolicy

@@ -134,7 +134,7 @@ def initial_controller(task: PegTask, config: LocalConfig) -> LinearGaussian:
     ``torque tau / m_j`` whether inertia or damping resists it, so the same ``init_variance``
     explores every joint of every arm alike; with inertia alone, a heavily damped joint (the
     published xArm7's b / m reaches 600 per second) hardly moved under its noise and its
-    controllers took 14-25 iterations against 11-12 (docs/RESULTS.md section 16)."""
+    controllers took 14-25 iterations against 11-12 (docs/HISTORY.md [R16])."""
     tau = config.noise_smoothing * task.config.world.dt
     m = task.effective_inertia() + task.joint_damping() * tau
     lay = task.layout

@@ -76,8 +76,8 @@ class StreamConfig:
     :param transfer_phases: the iterations with successes needed where the policy transfers.
         2 rather than 3 cost 7 % fewer rollouts over 26 streams on 11 arms and 30 % fewer on
         the 24-condition square stream, with the same positions and test areas (4 mm
-        robustness: 13 misses of 1 664 against 7); 1 lost test areas (docs/RESULTS.md
-        section 24, docs/HISTORY.md section 12).
+        robustness: 13 misses of 1 664 against 7); 1 lost test areas (docs/HISTORY.md
+        [R24] [H12]).
     :param repairs: the most S-step rounds while the policy's noiseless rollouts miss a
         condition learnt so far (0 with ``onpolicy_rounds`` 0: one S-step, as in the paper).
     :param onpolicy: label the states the policy visits at every condition learnt so far

@@ -27,10 +27,9 @@ class PolicyConfig:
         input -> 4 x 42 ReLU -> dU).
     :param learning_rate: Adam step size (original GPS: 1e-3).
     :param batch_size: rows per Adam minibatch. 256 about halves the S-step's time against
-        512, with the same positions reached over 26 runs on 11 arms (docs/RESULTS.md section
-        23).
+        512, with the same positions reached over 26 runs on 11 arms (docs/HISTORY.md [R23]).
     :param steps: Adam steps per S-step (the original GPS: 4000 steps of 25). With 500 the
-        Panda's seed-2 stream kept 6/8 positions (docs/RESULTS.md section 12).
+        Panda's seed-2 stream kept 6/8 positions (docs/HISTORY.md [R12]).
     :param std_floor: lower bound on the whitening standard deviation, so constant state
         dimensions (zero variance) do not divide by zero.
     :param seed: seed of the weight initialisation and of the S-step's minibatch draws.
@@ -50,8 +49,8 @@ class PolicyConfig:
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
         scaled targets); the policy itself stays float64. float32 takes a third less loop
         time and reached as many positions over 38 paired runs, but fewer on the published
-        Panda (59 against 63 of 72) with more repair rounds (docs/RESULTS.md sections 12.1
-        and 19), so float64 stays the default.
+        Panda (59 against 63 of 72) with more repair rounds (docs/HISTORY.md [R12.1]
+        [R19]), so float64 stays the default.
     """
 
     hidden_sizes: tuple[int, ...] = (42, 42, 42, 42)

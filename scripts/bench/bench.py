@@ -2,6 +2,7 @@
 
     python scripts/bench/bench.py [--urdf robots/kuka_peg.urdf] [--repeats 5] [--only NAME ...]
         [--reference REV]
+    python scripts/bench/bench.py --runs RUN [RUN ...]
 
 - default:   the default stream (``run_stream.py --urdf URDF``, seed 0) run twice, with one
              rollout worker and with the default (this machine's cores): its wall time, and
@@ -21,7 +22,19 @@
 - sweep:     4 cells (seeds 0-3) of a 2-condition stream run by scripts/sweep.py on a local Ray
              instance of 2 CPUs, against the same 4 run_stream.py commands one after another
              (the speed-up; one run of each, not the median: they take minutes).
+- model_prior: on one iteration's samples at the nominal hole, as ratios to the dynamics fit
+             with the GMM prior (warm-started): the arm's control step linearised at the T-1
+             per-step sample means (what the model prior evaluates) and at all N x (T-1)
+             samples, the fit with the model prior (GMM, linearisation, mixing), the first
+             controller planned on the model (``LocalConfig.model_plans`` C-steps), and the
+             iteration's rollouts in one process.
 Medians over the repeats; the machine is noisy, so compare ratios, not seconds.
+
+``--runs`` measures nothing: it prints one markdown row per finished run folder, the final
+policy's successes at the training positions (summary.json), the wall seconds metrics.jsonl
+records for sampling, dynamics fits, C-steps (with the plans on the model) and S-steps (with
+their closed-loop checks and repair rounds), the repair rounds, and the S-steps' time over
+the sampling time.
 """
 
 from __future__ import annotations
@@ -35,6 +48,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -43,8 +57,15 @@ import torch
 import lolgps_torch.sim.world as world_module
 from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder
+from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.lolgps import StreamConfig, make_learner
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+from lolgps_torch.lolgps.local import (
+    LocalConfig,
+    LocalLearner,
+    initial_controller,
+    iterate,
+    planned_controller,
+)
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -233,12 +254,74 @@ def bench_default(task: PegTask, repeats: int, reference: str | None = None) -> 
     return results
 
 
+def bench_model_prior(task: PegTask, repeats: int) -> dict[str, float]:
+    """The model prior's parts against the GMM-prior fit, on one iteration's samples."""
+    config = LocalConfig()
+    learner = LocalLearner(task, (0.0, 0.0), config, seed=0)
+    hold = initial_controller(task, config)
+    samples = learner.sample(learner.p_cur)
+    x, u = samples.x, samples.u  # [5, T, dX], [5, T, dU]
+    gmm = DynamicsFitter(DynamicsConfig())
+    model = DynamicsFitter(replace(DynamicsConfig(), prior="model"), task.model.linearize)
+    for fitter in (gmm, model):
+        fitter.update(x, u)  # cold start of the GMM, not timed
+    states, actions = x[:, :-1], u[:, :-1]
+    seconds = {
+        "fit_gmm": median_time(lambda: gmm.update(x, u), repeats),
+        "linearize_mean": median_time(
+            lambda: task.model.linearize(states.mean(0), actions.mean(0)), repeats
+        ),
+        "linearize_all": median_time(
+            lambda: task.model.linearize(
+                states.reshape(-1, x.shape[-1]), actions.reshape(-1, u.shape[-1])
+            ),
+            repeats,
+        ),
+        "fit_model": median_time(lambda: model.update(x, u), repeats),
+        "plan": median_time(
+            lambda: planned_controller(task, learner.targets, hold, config), repeats
+        ),
+        "sample": median_time(lambda: learner.sample(learner.p_cur), repeats),
+    }
+    results = {"fit_gmm_s": seconds["fit_gmm"]}
+    for name, value in seconds.items():
+        if name != "fit_gmm":
+            results[f"{name} / fit_gmm"] = value / seconds["fit_gmm"]
+    return results
+
+
+def stream_times(paths: list[str]) -> None:
+    """Print the ``--runs`` table (module docstring)."""
+    phases = tuple(PARTS.values())
+    print(
+        "| run | final | sampling s | fits s | C-steps s | S-steps s | repair rounds "
+        "| S-steps / sampling |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for path in paths:
+        folder = RunFolder(path)
+        sums = dict.fromkeys(phases, 0.0)
+        repairs = 0
+        for record in folder.read_metrics():
+            for phase in phases:
+                sums[phase] += float(record.get(phase, 0.0))
+            repairs += int(record.get("repairs") or 0)
+        entries = folder.read_summary()["conditions"]
+        final = sum(bool(e["policy_success_end"]) for e in entries)
+        times = " | ".join(f"{sums[p]:.1f}" for p in phases)
+        ratio = sums["time_distill"] / sums["time_sample"] if sums["time_sample"] else float("nan")
+        print(
+            f"| {folder.path.name} | {final}/{len(entries)} | {times} | {repairs} | {ratio:.2f} |"
+        )
+
+
 BENCHES = {
     "default": bench_default,
     "physics": bench_physics,
     "algorithm": bench_algorithm,
     "stream": bench_stream,
     "sweep": bench_sweep,
+    "model_prior": bench_model_prior,
 }
 
 
@@ -254,7 +337,11 @@ def main() -> None:
         default=None,
         help="git revision whose default stream the default bench also times, in the same run",
     )
+    parser.add_argument("--runs", nargs="+", default=None, help="finished run folders: their times")
     args = parser.parse_args()
+    if args.runs:
+        stream_times(args.runs)
+        return
     BENCHES["default"] = functools.partial(bench_default, reference=args.reference)
     task = PegTask(TaskConfig(urdf=args.urdf), n_worlds=5)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")

@@ -12,16 +12,15 @@
             eq. 8 from six gathered fields (``_row_quadratics``, as ``kl_loss`` evaluates them),
             on the same rows in the net's units, draws and net, alternated; the paired ratio,
             and the largest relative difference of the two forms' row losses at the first step.
-- phases:   sampling, dynamics fit and C-step of the first iterations of one condition
-            (5 rollouts each), as ratios to that iteration's sampling time.
 - replay:   the S-step with replay (``Distiller``: one new condition's D_g with its augmented
             copies, plus a replay of the earlier ones read from HDF5) for 8, 16 and 32
             conditions of the real sizes (9-45 successful rollouts of T = 100 steps each,
             the task's dX and dU), with the replay's rows and MB, and the time per S-step as a
             ratio to that at 8 conditions and to a condition's sampling (12 iterations of 5
             rollouts, the sampling of one iteration measured here).
-The S-step and replay figures are CPU times (``time.process_time``, one torch thread, PyBullet
-in-process), the phases wall times as the stream records them; medians over the repeats.
+The figures are CPU times (``time.process_time``, one torch thread, PyBullet in-process);
+medians over the repeats. The fit and C-step against the sampling of the same iteration are
+``scripts/bench/bench.py --only algorithm``.
 The cores are shared with other jobs: compare ratios, not seconds.
 """
 
@@ -40,7 +39,7 @@ from lolgps_torch.cli import run
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, initial_controller, iterate
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, initial_controller
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill, optimal_variance
 from lolgps_torch.policy.sstep import (
     AdamMoments,
@@ -147,22 +146,6 @@ def bench_sstep(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
     }
 
 
-def bench_phases(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
-    """Fit and C-step against the sampling of the same iteration (iterations 2..)."""
-    learner = LocalLearner(task, (0.0, 0.0), LocalConfig(samples=len(task.sampler.worlds)), seed=0)
-    rows = []
-    for i in range(max(repeats, 3) + 2):
-        _, _, record = iterate(learner, learner.p_cur, None, False, (0, i, 0.0))
-        rows.append((record.time_sample, record.time_fit, record.time_cstep))
-    rows = rows[2:]  # iterations 0 and 1 start their GMM cold (K changes)
-    sample = statistics.median(r[0] for r in rows)
-    return {
-        "sample_s": sample,
-        "fit_over_sample": statistics.median(r[1] / r[0] for r in rows),
-        "cstep_over_sample": statistics.median(r[2] / r[0] for r in rows),
-    }
-
-
 def bench_replay(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
     """The S-step with replay at 8, 16 and 32 conditions; ratios to 8 and to sampling."""
     dX, dU, T = task.layout.dX, task.layout.dU, task.T
@@ -252,7 +235,6 @@ def bench_forms(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
 BENCHES = {
     "sstep": bench_sstep,
     "forms": bench_forms,
-    "phases": bench_phases,
     "replay": bench_replay,
 }
 
