@@ -22,6 +22,7 @@ import torch
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.task import TaskConfig
 
 Position = tuple[float, float]
@@ -106,13 +107,18 @@ class ConfigFlags:
         }
         return {**derived, **self.renames}
 
-    def add_to(self, parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-        """Add the flags to ``parser``."""
+    def add_to(
+        self, parser: argparse.ArgumentParser | argparse._ArgumentGroup, inherited: str = ""
+    ) -> None:
+        """Add the flags to ``parser``; with ``inherited``, a flag left out keeps the value of
+        the configuration :meth:`build` is given, which ``inherited`` names in the help."""
         for flag, paths in self.table().items():
             owner, name = _leaf(self.default, paths[0])
-            default = getattr(owner, name)
+            default = None if inherited else getattr(owner, name)
             text = _param_help(owner, name)
-            if not flag.startswith("no-"):
+            if inherited:
+                text += f" (default: {inherited})"
+            elif not flag.startswith("no-"):
                 text += " (default %(default)s)"
             parser.add_argument(
                 f"--{flag}",
@@ -121,16 +127,33 @@ class ConfigFlags:
                 **_argument(_field_hint(owner, name), flag),
             )
 
-    def build(self, args: argparse.Namespace) -> Any:
-        """The configuration the parsed flags describe (its ``__post_init__`` checks apply)."""
-        config = self.default
+    def build(self, args: argparse.Namespace, base: Any = None) -> Any:
+        """The configuration the parsed flags describe (its ``__post_init__`` checks apply):
+        ``base`` with the flags given (those added with ``inherited``), else the default with
+        every flag."""
+        config = self.default if base is None else base
         for flag, paths in self.table().items():
             value = getattr(args, flag.replace("-", "_"))
+            if base is not None and value is None:
+                continue
             value = tuple(value) if isinstance(value, list) else value
             for path in paths:
                 config = _replaced(config, path, value)
         return config
 
+
+PLANT_FLAGS = ConfigFlags(
+    PlantConfig(),
+    renames={
+        "plant-inertia-scale": ("inertia_scale",),
+        "plant-seed": ("seed",),
+        "payload": ("payload",),
+        "gravity-compensation": ("gravity_compensation",),
+        "joint-friction": ("joint_friction",),
+        "obs-noise": ("obs_noise",),
+        "action-delay": ("action_delay",),
+    },
+)
 
 TASK_FLAGS = ConfigFlags(
     TaskConfig(urdf=""),
@@ -140,9 +163,11 @@ TASK_FLAGS = ConfigFlags(
         "peg-axis": ("peg.axis",),
         "q0": ("placement.q0",),
         "friction": ("world.friction",),
+        "known-delay": ("world.known_delay",),
         "action-weight": ("cost.action_weight",),
         "descent-height": ("cost.descent_height",),
         "descent-steps": ("cost.descent_steps",),
+        **{flag: (f"plant.{name}",) for flag, (name,) in PLANT_FLAGS.renames.items()},
     },
     skip=("urdf", "scale"),  # run_stream.py's --scale takes auto too
 )
@@ -172,6 +197,18 @@ def scale_factor(text: str) -> float:
         return float(text)
     except ValueError:
         raise LolgpsError(f"--scale {text}: expected auto or a factor in (0, 1]") from None
+
+
+def add_plant_arguments(parser: argparse.ArgumentParser) -> None:
+    """The plant flags of a script that runs a saved run again: each one left out keeps the
+    run's (:func:`plant_config`)."""
+    PLANT_FLAGS.add_to(parser.add_argument_group("plant"), inherited="the run's")
+
+
+def plant_config(args: argparse.Namespace, saved: PlantConfig) -> PlantConfig:
+    """The run's plant ``saved`` with the plant flags given (:func:`add_plant_arguments`)."""
+    plant: PlantConfig = PLANT_FLAGS.build(args, saved)
+    return plant
 
 
 WORKERS_VARIABLE = "LOLGPS_WORKERS"

@@ -75,6 +75,7 @@ def observation_bounds(task: PegTask) -> tuple[np.ndarray, np.ndarray]:
     high[layout.qd] = MAX_JOINT_VELOCITY
     high[layout.points] = 2 * R
     high[layout.point_velocities] = 2 * R / world.dt
+    high[layout.actions] = np.tile(task.arm.effort, layout.history)  # the past actions
     low = -high
     q0, swing = np.asarray(task.geometry.q0), MAX_JOINT_VELOCITY * world.T * world.dt
     low[layout.q], high[layout.q] = q0 - swing, q0 + swing

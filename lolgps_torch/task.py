@@ -17,6 +17,14 @@ from torch import Tensor
 
 from lolgps_torch.configs import from_dict
 from lolgps_torch.cost.l12 import CostConfig, PegCost
+from lolgps_torch.dynamics.identify import (
+    ArmParameters,
+    IdentifyConfig,
+    TorqueBalance,
+    Transitions,
+    identified_dynamics,
+    identify,
+)
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import PegConfig, load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
@@ -30,13 +38,17 @@ from lolgps_torch.robot.placement import (
 )
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
-from lolgps_torch.sim.model import ControlStep
+from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.world import WorldConfig
-from lolgps_torch.state import StateLayout
 from lolgps_torch.types import Trajectories
+
+IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses
+CLEARANCE = 0.02  # m: a tip this far above the table touches nothing
+LIMIT_MARGIN = 0.05  # rad (or m): a joint this far from its limits is free
 
 
 @dataclass(frozen=True)
@@ -52,7 +64,8 @@ class TaskConfig:
         name, after the URDF's ancestors and ROS_PACKAGE_PATH.
     :param scale: the factor the stream's geometry is scaled by to fit the arm (hole offsets,
         test areas, the start height and an attached peg's length; :func:`scaled`); the hole's
-        depth and clearances stay as they are."""
+        depth and clearances stay as they are.
+    :param plant: how the simulated arm departs from the URDF; only the worlds read it."""
 
     urdf: str
     ee_link: str | None = None
@@ -64,6 +77,7 @@ class TaskConfig:
     world: WorldConfig = field(default_factory=WorldConfig)
     placement: PlacementConfig = field(default_factory=PlacementConfig)
     cost: CostConfig = field(default_factory=CostConfig)
+    plant: PlantConfig = field(default_factory=PlantConfig)
 
     def __post_init__(self) -> None:
         if self.ee_link is not None and not self.ee_link:
@@ -81,10 +95,12 @@ class TaskConfig:
             ("world", WorldConfig),
             ("placement", PlacementConfig),
             ("cost", CostConfig),
+            ("plant", PlantConfig),
         )
         for name, kind in parts:
             if not isinstance(getattr(self, name), kind):
                 raise LolgpsError(f"task {name} settings must be a {kind.__name__}")
+        self.plant.delay_steps(self.world.dt / self.world.substeps)
 
     def held(self) -> dict[str, float]:
         """The ``hold`` pairs as joint -> position; a malformed pair is a :class:`LolgpsError`."""
@@ -197,7 +213,7 @@ class PegTask:
         self.config = config
         self.device = torch.device(device)
         self.arm: ArmSpec = load_task_arm(config)
-        self.layout = StateLayout(self.arm.dof)
+        self.layout = config.world.layout(self.arm.dof)
         self.kinematics = PegKinematics(self.arm, self.device)
         try:  # an arm the loader accepts can still be one no pose or simulation works for
             self.geometry = place_task(
@@ -210,16 +226,21 @@ class PegTask:
                 self.geometry.q0,
                 n_worlds,
                 device,
+                config.plant,
             )
         except (pb.error, torch.linalg.LinAlgError) as error:
             message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
             raise LolgpsError(f"{config.urdf}: the arm cannot be simulated: {message}") from None
-        setup = WorldSetup(self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0)
+        setup = WorldSetup(
+            self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0, config.plant
+        )
         parallel = workers > 1 and self.device.type == "cpu"
         self.pool = RolloutPool(setup, workers, self.sampler) if parallel else None
         effort = torch.tensor(self.arm.effort, dtype=torch.float64)
         self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
         self._model: ControlStep | None = None
+        self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
+        self._seen: list[Transitions] = []  # free-space transitions kept for identification
 
     @property
     def model(self) -> ControlStep:
@@ -227,6 +248,38 @@ class PegTask:
         if self._model is None:
             self._model = ControlStep(self.arm, self.config.world, device=self.device)
         return self._model
+
+    def record(self, samples: Trajectories, keep: int = IDENTIFY_TRANSITIONS) -> None:
+        """Keep the newest ``keep`` transitions of ``samples`` that are free of contact (the
+        tip higher than the table by :data:`CLEARANCE` before and after) and of the joint
+        limits (by :data:`LIMIT_MARGIN` rad), for :meth:`identify_model`."""
+        lay = self.layout
+        lower, upper = (
+            torch.tensor(limit, dtype=torch.float64, device=self.device)
+            for limit in (self.arm.lower, self.arm.upper)
+        )
+        x = torch.cat([samples.x, samples.final_state[:, None]], 1)
+        q, tip_height = x[..., lay.q], x[..., lay.points][..., 2]
+        clear = (tip_height > self.config.world.depth + CLEARANCE) & (
+            torch.minimum(q - lower, upper - q).amin(-1) > LIMIT_MARGIN
+        )
+        kept = Transitions.from_rollouts(x, samples.u, lay, clear[:, :-1] & clear[:, 1:])
+        self._seen.append(kept)
+        parts = zip(*self._seen, strict=True)
+        self._seen = [Transitions(*(torch.cat(list(part))[-keep:] for part in parts))]
+
+    def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
+        """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the
+        identified arm's (None, the model unchanged, before any transition)."""
+        if not self._seen or self._seen[0].q0.shape[0] == 0:
+            return None
+        urdf = ControlStep(self.arm, self.config.world, device=self.device).urdf
+        effort = torch.tensor(self.arm.effort, dtype=torch.float64, device=self.device)
+        balance = TorqueBalance(urdf, effort, self.config.world.dt, LINK_DAMPING)
+        params = identify(balance, self._seen[0], config)
+        identified = (identified_dynamics(urdf, params), float(params.compensation))
+        self._model = ControlStep(self.arm, self.config.world, self.device, identified)
+        return params
 
     @property
     def T(self) -> int:
@@ -255,31 +308,34 @@ class PegTask:
             )
 
     def effective_inertia(self) -> Tensor:
-        """``1 / diag(M(q0)^{-1})`` per actuated joint (kg m^2): the inertia each joint feels."""
+        """``1 / diag(M(q0)^{-1})`` per actuated joint (kg m^2): the inertia each joint feels,
+        in the URDF's arm (not the plant's)."""
         world = self.sampler.worlds[0]
+        client, body = world.reference
         q_all = [0.0] * len(world.movable)
         for j, i in zip(world.actuated_in_movable, range(self.arm.dof), strict=True):
             q_all[j] = self.geometry.q0[i]
-        M = torch.tensor(pb.calculateMassMatrix(world.body, q_all, physicsClientId=world.client))
+        M = torch.tensor(pb.calculateMassMatrix(body, q_all, physicsClientId=client))
         idx = torch.tensor(world.actuated_in_movable)
         Minv = torch.linalg.inv(M)[idx][:, idx]
         return (1.0 / torch.diagonal(Minv)).to(dtype=torch.float64, device=self.device)
 
     def joint_damping(self) -> Tensor:
-        """The joint damping b (N m s/rad) PyBullet applies, per actuated joint."""
+        """The joint damping b (N m s/rad) of the URDF, per actuated joint."""
         world = self.sampler.worlds[0]
-        b = [
-            pb.getJointInfo(world.body, j, physicsClientId=world.client)[6] for j in world.joint_ids
-        ]
+        client, body = world.reference
+        b = [pb.getJointInfo(body, j, physicsClientId=client)[6] for j in world.joint_ids]
         return torch.tensor(b, dtype=torch.float64, device=self.device)
 
     def sample(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
         """One rollout per offset, each run alone (on the worker processes, if any), scored by
-        the cost."""
+        the cost; each call's sensor noise is new."""
+        batch, self._batches = self._batches, self._batches + 1
         if self.pool is None:
-            x, u, final = rollout_rows(self.sampler, act, offsets, range(len(offsets)))
+            x, u, final = rollout_rows(self.sampler, act, offsets, range(len(offsets)), batch)
         else:
-            x, u, final = (part.to(self.device) for part in self.pool.rollout(act, offsets))
+            rolled = self.pool.rollout(act, offsets, batch)
+            x, u, final = (part.to(self.device) for part in rolled)
         return self.score(x, u, final, offsets)
 
     def score(

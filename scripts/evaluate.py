@@ -12,6 +12,8 @@ table. ``--positions FILE`` (a JSON list of [dx, dy] in metres) evaluates those 
 instead of the areas; ``--scratch DIR`` takes from-scratch iterations to first success from
 another run's summary.json for forward transfer. ``--ray`` runs the rollouts on Ray actors (a
 local instance, or the cluster at ADDRESS) instead of processes, with the same results.
+The rollouts run on the run's own plant (config.json's ``task.plant``); the plant flags
+(``--payload``, ``--action-delay``, ...) change it, each one left out keeping the run's.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
-from lolgps_torch.cli import read_offsets, run
+from lolgps_torch.cli import add_plant_arguments, plant_config, read_offsets, run
 from lolgps_torch.cluster import import_ray
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
@@ -28,6 +30,7 @@ from lolgps_torch.evaluation.evaluate import evaluate_run
 from lolgps_torch.evaluation.plot import plot_fig4
 from lolgps_torch.evaluation.square import SquareConfig
 from lolgps_torch.evaluation.table import format_table
+from lolgps_torch.lolgps.run import read_run
 
 
 def make_parser(defaults: AreaConfig) -> argparse.ArgumentParser:
@@ -81,6 +84,7 @@ def make_parser(defaults: AreaConfig) -> argparse.ArgumentParser:
         help="roll out on Ray actors instead of processes: alone, a local instance of --workers "
         "CPUs; with an address (e.g. auto), that cluster (needs pip install -e '.[ray]')",
     )
+    add_plant_arguments(parser)
     return parser
 
 
@@ -92,6 +96,7 @@ def main() -> None:
     if args.ray is not None:
         import_ray()
     areas, positions, square = test_set(args, defaults)
+    plant = plant_config(args, read_run(RunFolder(args.run)).task.plant)
     evaluation = evaluate_run(
         args.run,
         args.workers,
@@ -101,6 +106,7 @@ def main() -> None:
         batch_size=args.batch_size,
         square=square,
         ray=args.ray,
+        plant=plant,
     )
     folder = RunFolder(args.run)
     plot_fig4(evaluation, folder.figure_path)

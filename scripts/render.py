@@ -12,16 +12,19 @@ start; mouth: a close-up of the funnel, cut open on the camera's side). Each cli
 captioned with its condition, hole offset, time, the tip's distance and its outcome (success
 or miss at its final distance); clips go side by side in a grid or one after another. Writes
 FILE (default DIR/videos/WHO-VIEW.mp4; an .mp4 needs the ``video`` extra, a .gif only
-Pillow) and prints each clip's final distance.
+Pillow) and prints each clip's final distance. The rollouts run on the run's own plant; the
+plant flags (``--payload``, ``--action-delay``, ...) change it, each one left out keeping the
+run's.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
-from lolgps_torch.cli import ConfigFlags, run
+from lolgps_torch.cli import ConfigFlags, add_plant_arguments, plant_config, run
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.render import (
     RenderConfig,
@@ -51,10 +54,13 @@ def main() -> None:
     )
     parser.add_argument("--out", default=None, help="the video (default DIR/videos/WHO-VIEW.mp4)")
     FLAGS.add_to(parser)
+    add_plant_arguments(parser)
     args = parser.parse_args()
     config: RenderConfig = FLAGS.build(args)
     out = check_output(args.out or Path(args.run) / "videos" / f"{config.who}-{config.view}.mp4")
     loaded = load_run(args.run)
+    task = replace(loaded.info.task, plant=plant_config(args, loaded.info.task.plant))
+    loaded = replace(loaded, info=replace(loaded.info, task=task))
     completed = [r.condition for r in loaded.records]
     conditions = parse_conditions(args.conditions, completed)
     if args.after is not None and args.after not in completed:

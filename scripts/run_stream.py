@@ -68,6 +68,7 @@ STREAM_FLAGS = ConfigFlags(
         "seed": ("seed", "policy.seed"),
         "dynamics-prior": ("local.dynamics.prior",),
         "model-plans": ("local.model_plans",),
+        "identify": ("local.identify",),
     },
     skip=("use_pre",),  # set by --method
 )

@@ -29,7 +29,6 @@ from lolgps_torch.progress import progress
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import place_task
 from lolgps_torch.robot.spec import ArmSpec
-from lolgps_torch.state import StateLayout
 from lolgps_torch.task import TaskConfig, load_task_arm
 from lolgps_torch.types import VisitedRows
 
@@ -194,7 +193,7 @@ def _metadata(
     task: TaskConfig, arm: ArmSpec, mouth: Tensor, q0: tuple[float, ...]
 ) -> dict[str, dict[str, Any]]:
     """The metadata groups ``arm``, ``state``, ``task`` and ``cost`` (plain JSON-able values)."""
-    layout = StateLayout(arm.dof)
+    layout = task.world.layout(arm.dof)
     return {
         "arm": {
             "urdf_text": arm.urdf_text,
@@ -247,10 +246,11 @@ def read_run(run_dir: str | Path) -> RunData:
     mouth = torch.tensor(geometry.nominal_mouth, dtype=torch.float64)
     trajectories = _flatten(records, task.world.success_threshold)
     T, dX = trajectories.actions.shape[1], trajectories.states.shape[2]
-    if task.world.T != T or StateLayout(arm.dof).dX != dX:
+    expected = task.world.layout(arm.dof).dX
+    if task.world.T != T or expected != dX:
         raise LolgpsError(
             f"replay of {folder.path} holds T={T}, dX={dX}; its configuration and arm give "
-            f"T={task.world.T}, dX={StateLayout(arm.dof).dX}"
+            f"T={task.world.T}, dX={expected}"
         )
     root = {
         "format": FORMAT,

@@ -35,6 +35,7 @@ from lolgps_torch.evaluation.square import SquareConfig, square_test_positions
 from lolgps_torch.evaluation.transfer import compute_scratch, rates_by_condition, transfer_rows
 from lolgps_torch.evaluation.worker import Job, PolicyState, Position
 from lolgps_torch.lolgps.run import RunInfo, read_run
+from lolgps_torch.sim.plant import PlantConfig
 
 
 def stage_policies(folder: RunFolder, info: RunInfo) -> list[tuple[int, PolicyState]]:
@@ -229,6 +230,7 @@ def evaluate_run(
     batch_size: int = 10,
     square: tuple[SquareConfig, int] | None = None,
     ray: str | None = None,
+    plant: PlantConfig | None = None,
 ) -> dict[str, Any]:
     """Evaluate every stage's checkpoint of ``run_dir`` and write its ``eval.json``.
 
@@ -244,6 +246,7 @@ def evaluate_run(
         (its side scaled as ``areas`` are) and the seed of its positions.
     :param ray: run the rollouts on Ray instead of processes: ``"local"`` starts a local
         instance of ``workers`` CPUs, anything else is a cluster address (e.g. ``auto``).
+    :param plant: the simulated arm to evaluate on (default: the run's own).
     :returns: the dict written to ``eval.json``.
     """
     if areas is not None and positions is not None:
@@ -261,6 +264,8 @@ def evaluate_run(
         else None
     )
     square = (replace(square[0], side=square[0].side * factor), square[1]) if square else None
+    if plant is not None:
+        info = replace(info, task=replace(info.task, plant=plant))
     policies = stage_policies(folder, info)
     if square is not None:
         groups = _square_group(*square, info)
@@ -275,6 +280,7 @@ def evaluate_run(
         "mode": "square" if square else "positions" if positions is not None else "areas",
         "area_config": asdict(areas) if areas is not None else None,
         "success_threshold": info.task.world.success_threshold,
+        "plant": asdict(info.task.plant),
         "training": {"conditions": [list(c) for c in info.conditions], "stages": info.stages},
         "groups": groups,
         "stages": stages,

@@ -113,7 +113,13 @@ def _setup(peg: PegTask, n_worlds: int, policies: Sequence[PolicyState]) -> Roll
     geometry = peg.geometry
     world = peg.config.world
     return RolloutSetup(
-        peg.arm, world, geometry.nominal_mouth, geometry.q0, n_worlds, tuple(policies)
+        peg.arm,
+        world,
+        geometry.nominal_mouth,
+        geometry.q0,
+        n_worlds,
+        tuple(policies),
+        peg.config.plant,
     )
 
 

@@ -25,6 +25,7 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
 from lolgps_torch.sim.rollout import Sampler
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.state import StateLayout
@@ -84,6 +85,7 @@ class RolloutSetup:
     :param q0: the start pose (rad) from the task's placement.
     :param n_worlds: worlds stepped in lockstep (the batch size).
     :param policies: the policies the jobs run.
+    :param plant: the simulated arm (``TaskConfig.plant``).
     """
 
     arm: ArmSpec
@@ -92,10 +94,13 @@ class RolloutSetup:
     q0: tuple[float, ...]
     n_worlds: int
     policies: tuple[PolicyState, ...]
+    plant: PlantConfig = NOMINAL_PLANT
 
     def sampler(self) -> Sampler:
         """A new pool of ``n_worlds`` worlds in this process."""
-        return Sampler(self.arm, self.world, self.nominal_mouth, self.q0, self.n_worlds)
+        return Sampler(
+            self.arm, self.world, self.nominal_mouth, self.q0, self.n_worlds, plant=self.plant
+        )
 
 
 class PolicyRoller:
@@ -128,7 +133,9 @@ class SetupRoller:
 
     def __init__(self, setup: RolloutSetup) -> None:
         torch.set_num_threads(1)
-        self.roller = PolicyRoller(setup.sampler(), StateLayout(setup.arm.dof), setup.policies)
+        self.roller = PolicyRoller(
+            setup.sampler(), setup.world.layout(setup.arm.dof), setup.policies
+        )
 
     def roll(self, index: int, job: Job) -> tuple[int, Rollouts]:
         """``(index, rollouts of job)``."""
@@ -155,7 +162,7 @@ def run_worker(
     torch.set_num_threads(1)
     try:
         setup = setups.get()
-        roller = PolicyRoller(setup.sampler(), StateLayout(setup.arm.dof), setup.policies)
+        roller = PolicyRoller(setup.sampler(), setup.world.layout(setup.arm.dof), setup.policies)
         while (index := next_job(counter, len(jobs))) is not None:
             results.put((index, roller(jobs[index])))
     except LolgpsError as error:

@@ -35,6 +35,7 @@ from lolgps_torch.controllers import hold_controller, smoothed_noise
 from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
+from lolgps_torch.dynamics.identify import IdentifyConfig
 from lolgps_torch.errors import NumericalError, check_fields
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
@@ -68,6 +69,10 @@ class LocalConfig:
     :param model_plans: with the model prior (``dynamics.prior == "model"``), C-steps taken on
         the model before the first sample (:func:`planned_controller`; 0: the first iteration
         samples the hold controller, as with the GMM prior).
+    :param identify: with the model prior, identify the arm's physical parameters from the
+        free-space transitions of the rollouts so far before learning each condition
+        (:mod:`lolgps_torch.dynamics.identify`): the planned start and the model prior then
+        use the identified arm instead of its URDF.
     :param cstep: the C-step's settings.
     :param dynamics: the dynamics fit's settings; its prior is the arm's model by default (a
         fitter alone has no model, so :class:`DynamicsConfig`'s own default is the GMM's).
@@ -79,6 +84,7 @@ class LocalConfig:
     noise_smoothing: float = 2.0
     reject_z: float = 2.0
     model_plans: int = 10
+    identify: bool = False
     cstep: CStepConfig = field(default_factory=CStepConfig)
     dynamics: DynamicsConfig = field(default_factory=lambda: DynamicsConfig(prior="model"))
 
@@ -203,6 +209,8 @@ class LocalLearner:
         self.p_cur = initial_controller(task, config)
         self.start_cost = math.inf  # the hold's mean total cost, measured by the first samples
         model = config.dynamics.prior == "model"
+        if model and config.identify:
+            task.identify_model(IdentifyConfig())
         self.fitter = DynamicsFitter(config.dynamics, task.model.linearize if model else None)
         start = time.perf_counter()
         if model and config.model_plans > 0:
@@ -227,7 +235,10 @@ class LocalLearner:
             self.config.samples, T, dU, self.config.noise_smoothing, self.generator
         ).to(self.task.device)
         actor = linear_gaussian_actor(p_act, noise)
-        return self.task.sample(actor, [self.offset] * self.config.samples)
+        samples = self.task.sample(actor, [self.offset] * self.config.samples)
+        if self.config.identify:
+            self.task.record(samples)
+        return samples
 
     def fit(self, p_act: LinearGaussian, samples: Trajectories) -> Fit:
         """Dynamics and cost expansion around the new samples; adapts the step size.

@@ -39,6 +39,7 @@ a link whose principal moments break the triangle inequality gets zero rotationa
 
 from __future__ import annotations
 
+import copy
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -232,6 +233,13 @@ class ArmDynamics:
         return BodyParameters(
             *(getattr(params, f).to(self.device) for f in params.__dataclass_fields__)
         )
+
+    def with_parameters(self, body: BodyParameters, joint_damping: Tensor) -> ArmDynamics:
+        """The same chain with other inertial parameters and joint damping (a new instance;
+        tensors may carry gradients to the parameters they were made from)."""
+        other = copy.copy(self)
+        other.body, other.joint_damping = body, joint_damping
+        return other
 
     def frames(self, q: Tensor) -> Frames:
         """World rotation and origin of each body, ``q: [..., n]``:

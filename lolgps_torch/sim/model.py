@@ -2,7 +2,7 @@
 
 :meth:`PegWorld.step <lolgps_torch.sim.world.PegWorld.step>` holds the torque
 ``tau = clip(u + g(q_0), -effort, effort)`` (g the gravity compensation at the start of the
-step) for ``substeps`` physics steps of ``h = dt / substeps``. Each physics step of PyBullet's
+step; for an identified arm, ``κ g_URDF``) for ``substeps`` physics steps of ``h = dt / substeps``. Each physics step of PyBullet's
 Featherstone solver is a semi-implicit Euler step,
 
     ``qd <- qd + h M(q)^{-1} (tau - b qd + tau_damp(q, qd) - c(q, qd) - g(q))``,
@@ -19,6 +19,11 @@ The point features follow the state's definition (:mod:`lolgps_torch.state`): wi
 ``P(q)`` the world positions of the tip and top,
 ``p' = p + P(q') - P(q)`` (the points are offsets from fixed targets) and
 ``v' = (P(q') - P(q)) / dt``. Contact with the table and the hole is not modelled.
+
+With a known command delay of D physics steps (``WorldConfig.known_delay``), physics step s of
+the control step t is driven by ``u_{t-j(s)}``, ``j(s) = max(0, ceil((D - s) / substeps))``,
+the past actions coming from the state (:class:`~lolgps_torch.state.StateLayout`), whose
+action history shifts: ``(u_{t-1}, ..., u_{t-h})' = (u_t, ..., u_{t-h+1})``.
 """
 
 from __future__ import annotations
@@ -29,7 +34,6 @@ from torch import Tensor
 from lolgps_torch.robot.rigid_body import ArmDynamics, Frames
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.world import WorldConfig
-from lolgps_torch.state import StateLayout
 
 # btMultiBody's default linear and angular damping, which PyBullet does not change.
 BULLET_LINK_DAMPING = 0.04
@@ -42,6 +46,9 @@ class ControlStep:
     :param arm: the parsed arm. :param config: the world's settings (dt, substeps, gravity,
         damping margin).
     :param device: where the model's tensors live.
+    :param identified: the arm as identified instead of its URDF: its rigid-body model (the
+        URDF's geometry) and κ, the gravity compensation ``κ g_URDF(q)`` it applies
+        (:mod:`lolgps_torch.dynamics.identify`); None: the URDF's, compensated exactly.
     """
 
     def __init__(
@@ -49,82 +56,124 @@ class ControlStep:
         arm: ArmSpec,
         config: WorldConfig,
         device: torch.device | str = "cpu",
+        identified: tuple[ArmDynamics, float] | None = None,
     ) -> None:
-        self.config, self.layout = config, StateLayout(arm.dof)
+        self.config, self.layout = config, config.layout(arm.dof)
         self.h = config.dt / config.substeps
+        delay = config.delay_steps  # j(s): which command drives physics step s
+        self.late = [max(0, -(-(delay - s) // config.substeps)) for s in range(config.substeps)]
         plain = ArmDynamics(arm, config.gravity, "pybullet", device=device)
-        self.dynamics = ArmDynamics(
+        self.urdf = ArmDynamics(
             arm, config.gravity, "pybullet", None, stabilising_inertia(plain, config), device
         )
+        self.dynamics, self.compensation = identified or (self.urdf, 1.0)
         self.effort = torch.tensor(arm.effort, dtype=torch.float64, device=self.dynamics.device)
 
     def __call__(self, x: Tensor, u: Tensor) -> Tensor:
         """The next state ``[..., dX]`` from states ``x: [..., dX]`` and actions ``u: [..., dU]``."""
         lay = self.layout
-        q, qd, moved, _ = self._advance(x[..., lay.q], x[..., lay.qd], u)
-        return torch.cat([q, qd, x[..., lay.points] + moved, moved / self.config.dt], -1)
+        q, qd, moved, _ = self._advance(x[..., lay.q], x[..., lay.qd], self._commands(x, u))
+        return torch.cat(
+            [q, qd, x[..., lay.points] + moved, moved / self.config.dt, self._shifted(x, u)], -1
+        )
+
+    def _commands(self, x: Tensor, u: Tensor) -> Tensor:
+        """``[u_t, u_{t-1}, ..., u_{t-h}]: [..., h+1, dU]`` from the state's action history."""
+        past = x[..., self.layout.actions].unflatten(-1, (self.layout.history, self.layout.dU))
+        return torch.cat([u[..., None, :], past], -2)
+
+    def _shifted(self, x: Tensor, u: Tensor) -> Tensor:
+        """The next state's action history ``[u_t, ..., u_{t-h+1}]`` (flat)."""
+        return torch.cat([u, x[..., self.layout.actions]], -1)[
+            ..., : self.layout.history * self.layout.dU
+        ]
 
     def linearize(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``f(x, u) ~ F [x; u] + f0`` at states ``x: [B, dX]`` and actions ``u: [B, dU]``:
         ``F = df/d[x; u]: [B, dX, dX+dU]``, ``f0 = f(x, u) - F [x; u]``.
 
-        Only q, qd and u move the arm, so the Jacobian of ``(q', qd', P(q') - P(q))`` over those
-        3n inputs is propagated through the substeps (:meth:`_advance`); the point columns are
-        the identity (``p' = p + ...``) and the point-velocity columns zero.
+        Only q, qd and the commands (u and the past actions) move the arm, so the Jacobian of
+        ``(q', qd', P(q') - P(q))`` over those inputs is propagated through the substeps
+        (:meth:`_advance`); the point columns are the identity (``p' = p + ...``), the
+        point-velocity columns zero, and the action history's rows a shift.
         """
         lay, n = self.layout, self.layout.n_joints
-        q, qd, moved, J = self._advance(x[:, lay.q], x[:, lay.qd], u, jacobian=True)
+        commands = self._commands(x, u)
+        q, qd, moved, J = self._advance(x[:, lay.q], x[:, lay.qd], commands, jacobian=True)
         assert J is not None
         B, dX = x.shape[0], lay.dX
         F = x.new_zeros(B, dX, dX + n)
-        joint_cols = list(range(2 * n)) + list(range(dX, dX + n))  # q, qd and u columns
+        # q, qd, u and past-action columns, in the order of _advance's inputs
+        joint_cols = list(range(2 * n)) + list(range(dX, dX + n)) + list(range(dX)[lay.actions])
         F[:, : 2 * n, joint_cols] = J[:, : 2 * n]
         F[:, lay.points, joint_cols] = J[:, 2 * n :]
         F[:, lay.points, lay.points] = torch.eye(6, dtype=x.dtype, device=x.device)
         F[:, lay.point_velocities, joint_cols] = J[:, 2 * n :] / self.config.dt
+        kept = lay.history * n  # u_t, u_{t-1}, ... move one place down the history
+        shift_cols = list(range(dX, dX + n)) + list(range(dX)[lay.actions])
+        F[:, lay.actions, shift_cols[:kept]] = torch.eye(kept, dtype=x.dtype, device=x.device)
         xu = torch.cat([x, u], -1)
-        step = torch.cat([q, qd, x[:, lay.points] + moved, moved / self.config.dt], -1)
+        step = torch.cat(
+            [q, qd, x[:, lay.points] + moved, moved / self.config.dt, self._shifted(x, u)], -1
+        )
         f0 = step - (F @ xu[..., None]).squeeze(-1)
         return F, f0
 
     def _advance(
-        self, q: Tensor, qd: Tensor, u: Tensor, jacobian: bool = False
+        self, q: Tensor, qd: Tensor, commands: Tensor, jacobian: bool = False
     ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-        """Joint positions and velocities after one control step, the points' move
+        """Joint positions and velocities after one control step under ``commands:
+        [..., h+1, n]`` (``u_t`` then the past actions), the points' move
         ``P(q') - P(q): [..., 6]`` and, if ``jacobian``, the derivative of
-        ``(q', qd', P(q') - P(q))`` with respect to ``(q, qd, u)``: ``[..., 2n + 6, 3n]``.
+        ``(q', qd', P(q') - P(q))`` with respect to ``(q, qd, u_t, u_{t-1}, ..., u_{t-h})``:
+        ``[..., 2n + 6, (3 + h) n]``.
 
-        The derivative is carried forward through the substeps by the chain rule, for all 3n
+        The derivative is carried forward through the substeps by the chain rule, for all
         input directions at once, from analytic derivatives of the dynamics. With ``ID(q, qd, qdd) = tau`` the inverse dynamics including both
         dampings, ``qdd = ID^{-1}(tau)`` has ``dqdd = M^{-1} (dtau - ID_q dq - ID_qd dqd)``
         (:meth:`ArmDynamics.inverse_dynamics_derivatives`); then ``dqd <- dqd + h dqdd``,
-        ``dq <- dq + h dqd``. The held torque has ``dtau = [clip' g_q(q_0), 0, clip']``
-        (clip' = 1 inside the effort limits, 0 outside) and a point ``P`` on the last body moves
+        ``dq <- dq + h dqd``. The torque held in physics step s has
+        ``dtau = [clip' g_q(q_0), 0, clip' e_j(s)]`` (clip' = 1 inside the effort limits, 0
+        outside; e_j the command j's columns) and a point ``P`` on the last body moves
         by ``dP/dq_k = v_k + omega_k x P`` for the joint motion ``S_k = (omega_k, v_k)``.
         """
         dyn = self.dynamics
         frames = dyn.frames(q)
         start = dyn.points(frames).flatten(-2)  # [..., 6]
         zeros = torch.zeros_like(q)
-        gravity = dyn.inverse_dynamics_at(frames, zeros, zeros)
-        tau = torch.minimum(torch.maximum(u + gravity, -self.effort), self.effort)
+        gravity = self.compensation * self.urdf.inverse_dynamics_at(frames, zeros, zeros)
+        driving = sorted(set(self.late))
+        tau = {
+            j: torch.minimum(
+                torch.maximum(commands[..., j, :] + gravity, -self.effort), self.effort
+            )
+            for j in driving
+        }
         if jacobian:
             eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device).expand(*q.shape, -1)
             none = torch.zeros_like(eye)
-            inside = ((u + gravity).abs() < self.effort).to(q.dtype)[..., None]
-            gravity_q = dyn.inverse_dynamics_derivatives(frames, zeros, zeros)[0]
-            d_tau = inside * torch.cat([gravity_q, none, eye], -1)  # [..., n, 3n]
-            d_q, d_qd = torch.cat([eye, none, none], -1), torch.cat([none, eye, none], -1)
+            gravity_q = self.urdf.inverse_dynamics_derivatives(frames, zeros, zeros)[0]
+            gravity_q = self.compensation * gravity_q
+            n_commands = commands.shape[-2]
+            d_tau = {}
+            for j in driving:
+                inside = ((commands[..., j, :] + gravity).abs() < self.effort).to(q.dtype)[
+                    ..., None
+                ]
+                picked = [eye if k == j else none for k in range(n_commands)]
+                d_tau[j] = inside * torch.cat([gravity_q, none, *picked], -1)  # [..., n, (3+h)n]
+            rest = [none] * n_commands
+            d_q, d_qd = torch.cat([eye, none, *rest], -1), torch.cat([none, eye, *rest], -1)
             d_start = self._point_jacobian(frames, start)
         damping = torch.diag(dyn.joint_damping)
         for s in range(self.config.substeps):
             if s > 0:
                 frames = dyn.frames(q)
-            held = tau - dyn.joint_damping * qd
+            held = tau[self.late[s]] - dyn.joint_damping * qd
             if jacobian:
                 wrench, D = dyn.link_damping_with_jacobian(frames, qd, *LINK_DAMPING)
                 qdd, id_q, id_qd, M = dyn.forward_dynamics_derivatives(frames, qd, held, wrench, D)
-                rhs = d_tau - id_q @ d_q - (id_qd + damping) @ d_qd
+                rhs = d_tau[self.late[s]] - id_q @ d_q - (id_qd + damping) @ d_qd
                 d_qd = d_qd + self.h * torch.linalg.solve(M, rhs)
                 d_q = d_q + self.h * d_qd
             else:

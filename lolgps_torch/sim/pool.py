@@ -34,6 +34,7 @@ from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.world import WorldConfig
 
@@ -43,16 +44,18 @@ Position = tuple[float, float]
 @dataclass(frozen=True)
 class WorldSetup:
     """What a worker needs to build a world identical to the main process's: the arm, the
-    world settings, and the placement's nominal hole mouth (m) and start pose (rad)."""
+    world settings, the placement's nominal hole mouth (m) and start pose (rad), and the
+    plant."""
 
     arm: ArmSpec
     config: WorldConfig
     nominal_mouth: tuple[float, ...]
     q0: tuple[float, ...]
+    plant: PlantConfig = PlantConfig()
 
     def sampler(self) -> Sampler:
         """One world in this process."""
-        return Sampler(self.arm, self.config, self.nominal_mouth, self.q0, 1)
+        return Sampler(self.arm, self.config, self.nominal_mouth, self.q0, 1, plant=self.plant)
 
 
 def _failure(error: BaseException) -> BaseException:
@@ -98,7 +101,8 @@ def _next_job(jobs: multiprocessing.queues.Queue[bytes | None]) -> bytes | None:
 
 def _serve(setup: WorldSetup, jobs: multiprocessing.queues.Queue[bytes | None],
            results: multiprocessing.queues.Queue[bytes]) -> None:  # fmt: skip
-    """A worker: build the world, then run ``(actor, offsets, rows)`` jobs until None, putting
+    """A worker: build the world, then run ``(actor, offsets, rows, batch)`` jobs until None,
+    putting
     the rollouts (or the exception that stopped them) on ``results``."""
     torch.set_num_threads(1)
     try:
@@ -110,8 +114,8 @@ def _serve(setup: WorldSetup, jobs: multiprocessing.queues.Queue[bytes | None],
         try:
             if sampler is None:
                 raise built if built is not None else RuntimeError("no world")
-            act, offsets, rows = pickle.loads(job)
-            result: Any = rollout_rows(sampler, act, offsets, rows)
+            act, offsets, rows, batch = pickle.loads(job)
+            result: Any = rollout_rows(sampler, act, offsets, rows, batch)
         except Exception as error:
             result = _failure(error)
         results.put(pickle.dumps(result))
@@ -140,16 +144,18 @@ class RolloutPool:
                 proc.start()
                 self._procs.append((proc, jobs, results))
 
-    def rollout(self, act: Actor, offsets: Sequence[Position]) -> tuple[Tensor, Tensor, Tensor]:
+    def rollout(
+        self, act: Actor, offsets: Sequence[Position], batch: int = 0
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """The batch's rollouts, row i at ``offsets[i]`` acted on by ``act``'s row i, as
-        :meth:`Sampler.rollout` returns them (CPU tensors)."""
+        :func:`rollout_rows` returns them (CPU tensors)."""
         n = len(offsets)
         mine, *blocks = [b.tolist() for b in torch.arange(n).tensor_split(min(self.workers, n))]
         used = self._procs[: len(blocks)]
         for (_, jobs, _), rows in zip(used, blocks, strict=True):
-            jobs.put(pickle.dumps((act, list(offsets), rows)))
+            jobs.put(pickle.dumps((act, list(offsets), rows, batch)))
         try:  # while the workers roll out theirs
-            own: Any = rollout_rows(self.own, act, offsets, mine)
+            own: Any = rollout_rows(self.own, act, offsets, mine, batch)
         except Exception as error:
             own = error
         parts = [own, *(self._receive(proc, results) for proc, _, results in used)]

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 from lolgps_torch.types import LinearGaussian
 
@@ -57,7 +58,8 @@ class RowActor(NamedTuple):
 
 
 class Sampler:
-    """A pool of worlds that run up to ``len(worlds)`` rollouts at a time."""
+    """A pool of worlds (of the plant ``plant``) that run up to ``len(worlds)`` rollouts at a
+    time."""
 
     def __init__(
         self,
@@ -67,26 +69,32 @@ class Sampler:
         q0: Sequence[float],
         n_worlds: int,
         device: torch.device | str = "cpu",
+        plant: PlantConfig = NOMINAL_PLANT,
     ) -> None:
         self.config = config
         self.q0 = np.asarray(q0, dtype=np.float64)
         self.device = torch.device(device)
-        self.worlds = [PegWorld(arm, config, nominal_mouth) for _ in range(n_worlds)]
+        self.worlds = [PegWorld(arm, config, nominal_mouth, plant=plant) for _ in range(n_worlds)]
 
     def rollout(
-        self, act: Actor, offsets: Sequence[tuple[float, float]]
+        self,
+        act: Actor,
+        offsets: Sequence[tuple[float, float]],
+        keys: Sequence[tuple[int, ...]] | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Run one episode of T actions per hole offset; returns the states x ``[N, T+1, dX]``
         (``x_T`` the state after the last action), u ``[N, T, dU]`` and the final tip distance
-        ``[N]`` (float64 tensors on the sampler's device)."""
+        ``[N]`` (float64 tensors on the sampler's device). Rollout i's sensor noise is drawn
+        from ``keys[i]`` (default ``(i,)``)."""
         T = self.config.T
+        keys = [(i,) for i in range(len(offsets))] if keys is None else keys
         results_x, results_u, results_d = [], [], []
         for start in range(0, len(offsets), len(self.worlds)):
             chunk = list(offsets[start : start + len(self.worlds)])
             worlds = self.worlds[: len(chunk)]
             for world, off in zip(worlds, chunk, strict=True):
                 world.set_hole(off)
-            x_np = np.stack([w.reset(self.q0) for w in worlds])
+            x_np = np.stack([w.reset(self.q0, keys[start + i]) for i, w in enumerate(worlds)])
             xs = np.empty((len(chunk), T + 1, x_np.shape[1]))
             us = np.empty((len(chunk), T, len(self.q0)))
             for t in range(T):
@@ -111,12 +119,16 @@ class Sampler:
 
 
 def rollout_rows(
-    sampler: Sampler, act: Actor, offsets: Sequence[tuple[float, float]], rows: Sequence[int]
+    sampler: Sampler,
+    act: Actor,
+    offsets: Sequence[tuple[float, float]],
+    rows: Sequence[int],
+    batch: int = 0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The rollouts of the batch's ``rows`` (row i at ``offsets[i]``), each run alone in
-    ``sampler``'s first world, stacked as :meth:`Sampler.rollout` returns them. A rollout's
-    result depends on its row alone, not on which rows share the call, so any split of a
-    batch over processes gives the same rollouts."""
-    parts = [sampler.rollout(RowActor(act, row), [offsets[row]]) for row in rows]
+    ``sampler``'s first world, stacked as :meth:`Sampler.rollout` returns them; row i's sensor
+    noise is keyed ``(batch, i)``. A rollout's result depends on its row alone, not on which
+    rows share the call, so any split of a batch over processes gives the same rollouts."""
+    parts = [sampler.rollout(RowActor(act, row), [offsets[row]], [(batch, row)]) for row in rows]
     x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
     return x, u, final

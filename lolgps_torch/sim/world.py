@@ -4,7 +4,10 @@ Dynamics: each control step of ``dt`` holds the command for ``substeps`` physics
 joint torque sent at every physics step is ``clip(u + g(q), -effort, effort)``, where ``g(q)``
 is the gravity-compensation torque (inverse dynamics at zero velocity and acceleration)
 evaluated at the start of the control step, as a torque-controlled arm's own gravity
-compensation would.  Only the peg collides with the table and the hole.
+compensation would.  Only the peg collides with the table and the hole.  The plant
+(:class:`~lolgps_torch.sim.plant.PlantConfig`) may differ from the URDF: other link inertias,
+a payload, another gravity compensation, joint friction, sensor noise and a command delay
+(``u`` above is then the command issued ``d`` earlier).
 
 The arm's visual shapes are not loaded unless pictures are taken (:class:`PegWorld`'s
 ``meshes``; ``URDF_IGNORE_VISUAL_SHAPES`` otherwise): PyBullet reads every visual mesh file
@@ -27,6 +30,12 @@ import numpy as np
 
 from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.plant import (
+    NOMINAL_PLANT,
+    VELOCITY_NOISE_RATIO,
+    PlantConfig,
+    physics_steps,
+)
 from lolgps_torch.sim.pybullet_quiet import pb, silenced
 from lolgps_torch.state import StateLayout
 
@@ -48,6 +57,9 @@ class WorldConfig:
         drifted 7 rad in 5 s with zero action before this).
     :param max_joint_speed: joint speed (rad/s) beyond which a state counts as a simulator
         blow-up (PyBullet itself caps joint speeds at 100 rad/s by default).
+    :param known_delay: the command delay (s) the learner allows for, whole physics steps: the
+        state carries the actions of the last ceil(d / dt) control steps and the arm's model
+        acts on each command d late (set it to the arm's latency)
     """
 
     dt: float = 0.05
@@ -63,6 +75,7 @@ class WorldConfig:
     success_threshold: float = 0.06
     damping_margin: float = 1.0
     max_joint_speed: float = 100.0
+    known_delay: float = 0.0
 
     def __post_init__(self) -> None:
         positive = {
@@ -91,6 +104,23 @@ class WorldConfig:
                 f"the hole's clearance at the floor ({self.clearance_bottom} m) exceeds that "
                 f"at the mouth ({self.clearance_mouth} m)"
             )
+        if not (math.isfinite(self.known_delay) and self.known_delay >= 0):
+            raise LolgpsError(f"--known-delay must be >= 0 and finite, got {self.known_delay}")
+        physics_steps(self.known_delay, self.dt / self.substeps, "--known-delay")
+
+    @property
+    def delay_steps(self) -> int:
+        """The known delay in physics steps."""
+        return physics_steps(self.known_delay, self.dt / self.substeps, "--known-delay")
+
+    @property
+    def history(self) -> int:
+        """Actions kept in the state: ``ceil(d / dt)`` for the known delay d."""
+        return -(-self.delay_steps // self.substeps)
+
+    def layout(self, dof: int) -> StateLayout:
+        """The state vector's layout for an arm of ``dof`` actuated joints."""
+        return StateLayout(dof, self.history)
 
 
 class PegWorld:
@@ -100,6 +130,7 @@ class PegWorld:
     :param arm: the arm. :param config: simulation and hole geometry.
     :param nominal_mouth: the hole's mouth at offset zero (world, m).
     :param meshes: load the arm's visual shapes, meshes included (only pictures need them).
+    :param plant: how the simulated arm departs from its URDF.
     """
 
     def __init__(
@@ -108,29 +139,25 @@ class PegWorld:
         config: WorldConfig,
         nominal_mouth: tuple[float, ...],
         meshes: bool = False,
+        plant: PlantConfig = NOMINAL_PLANT,
     ) -> None:
-        self.arm, self.config = arm, config
-        self.layout = StateLayout(arm.dof)
+        self.arm, self.config, self.plant = arm, config, plant
+        self.layout = config.layout(arm.dof)
         self.nominal_mouth = np.asarray(nominal_mouth, dtype=np.float64)
-        self.client = pb.connect(pb.DIRECT)
-        c = self.client
-        pb.setPhysicsEngineParameter(
-            fixedTimeStep=config.dt / config.substeps,
-            deterministicOverlappingPairs=1,
-            physicsClientId=c,
-        )
-        pb.setGravity(0, 0, -config.gravity, physicsClientId=c)
-        with tempfile.NamedTemporaryFile("w", suffix=".urdf", delete=False) as fh:
-            fh.write(arm.urdf_text)
-        try:
-            flags = pb.URDF_USE_INERTIA_FROM_FILE | (0 if meshes else pb.URDF_IGNORE_VISUAL_SHAPES)
-            with silenced():  # PyBullet's own warnings; the loader has said what matters
-                self.body = pb.loadURDF(fh.name, useFixedBase=True, flags=flags, physicsClientId=c)
-        except pb.error as exc:
-            raise LolgpsError(f"PyBullet could not load {arm.source_path}: {exc}") from None
-        finally:
-            os.unlink(fh.name)
+        self.delay = plant.delay_steps(config.dt / config.substeps)
+        self.client = self._connect()
+        self.body = self._load(self.client, meshes)
         self._index_joints()
+        # the arm as its URDF describes it: the simulated body itself unless the plant differs
+        self.reference = (self.client, self.body)
+        if plant.reshaped:
+            reference = self._connect()
+            self.reference = (reference, self._load(reference, False))
+            self._stabilise_damping(*self.reference)
+            # before PyBullet's first mass matrix or inverse dynamics of the body, which
+            # builds a copy of its masses that later changes do not reach
+            self._reshape()
+        self._stabilise_damping(self.client, self.body)
         self.hole = self._build_hole()
         self.offsets = np.asarray(arm.point_offsets, dtype=np.float64)  # [2, 3]
         self.effort = np.asarray(arm.effort, dtype=np.float64)
@@ -138,7 +165,36 @@ class PegWorld:
         self._prev_points = np.zeros(6)
         self._points = np.zeros(6)
         self._q_all: list[float] = [0.0] * len(self.movable)
+        self._queue = np.zeros((self.delay, arm.dof))  # commands issued, not yet acting
+        self._issued = np.zeros((config.history, arm.dof))  # the last commands, newest first
+        self._noise: np.random.Generator | None = None
         self.set_hole((0.0, 0.0))
+
+    def _connect(self) -> int:
+        """A new PyBullet client with the world's physics step and gravity."""
+        c = int(pb.connect(pb.DIRECT))
+        pb.setPhysicsEngineParameter(
+            fixedTimeStep=self.config.dt / self.config.substeps,
+            deterministicOverlappingPairs=1,
+            physicsClientId=c,
+        )
+        pb.setGravity(0, 0, -self.config.gravity, physicsClientId=c)
+        return c
+
+    def _load(self, client: int, meshes: bool) -> int:
+        """The arm's URDF as a fixed-base body of ``client``."""
+        arm = self.arm
+        with tempfile.NamedTemporaryFile("w", suffix=".urdf", delete=False) as fh:
+            fh.write(arm.urdf_text)
+        try:
+            flags = pb.URDF_USE_INERTIA_FROM_FILE | (0 if meshes else pb.URDF_IGNORE_VISUAL_SHAPES)
+            with silenced():  # PyBullet's own warnings; the loader has said what matters
+                body = pb.loadURDF(fh.name, useFixedBase=True, flags=flags, physicsClientId=client)
+        except pb.error as exc:
+            raise LolgpsError(f"PyBullet could not load {arm.source_path}: {exc}") from None
+        finally:
+            os.unlink(fh.name)
+        return int(body)
 
     def _index_joints(self) -> None:
         c = self.client
@@ -151,43 +207,56 @@ class PegWorld:
                 movable.append(i)
         self.joint_ids = [names[n] for n in self.arm.joint_names]
         self.point_link_id = links[self.arm.point_link]
+        self.peg_link_id = links[self.arm.peg_link]
         self.movable = movable  # every non-fixed joint, the order inverse dynamics expects
         self.actuated_in_movable = [movable.index(j) for j in self.joint_ids]
+        # the velocity motors, at target speed zero, are the joints' Coulomb friction
         pb.setJointMotorControlArray(
             self.body,
             self.joint_ids,
             pb.VELOCITY_CONTROL,
-            forces=[0.0] * len(self.joint_ids),
+            forces=[self.plant.joint_friction] * len(self.joint_ids),
             physicsClientId=c,
         )
-        self._stabilise_damping()
-        peg_id = links[self.arm.peg_link]
         for link in [-1, *links.values()]:
-            if link != peg_id:
+            if link != self.peg_link_id:
                 pb.setCollisionFilterGroupMask(self.body, link, 0, 0, physicsClientId=c)
 
-    def _stabilise_damping(self) -> None:
-        """Add rotor-like inertia where a joint's damping would be unstable.
+    def _stabilise_damping(self, c: int, body: int) -> None:
+        """Add rotor-like inertia where a joint's damping would be unstable (to ``body`` of
+        client ``c``).
 
         PyBullet applies joint damping b explicitly, which is stable only while
         b dt / m < ~2, with m the joint's effective inertia 1 / (M^-1)_jj. Where
         m < damping_margin b dt, the child link's principal inertias are raised by the
         difference (as a motor's reflected rotor inertia would); other arms are untouched.
         """
-        c, dt = self.client, self.config.dt / self.config.substeps
+        dt = self.config.dt / self.config.substeps
         zeros = [0.0] * len(self.movable)
-        M = np.asarray(pb.calculateMassMatrix(self.body, zeros, physicsClientId=c))
+        M = np.asarray(pb.calculateMassMatrix(body, zeros, physicsClientId=c))
         m_eff = 1.0 / np.diag(np.linalg.inv(M))[self.actuated_in_movable]
         for j, m in zip(self.joint_ids, m_eff, strict=True):
-            need = (
-                self.config.damping_margin
-                * pb.getJointInfo(self.body, j, physicsClientId=c)[6]
-                * dt
-            )
+            need = self.config.damping_margin * pb.getJointInfo(body, j, physicsClientId=c)[6] * dt
             if m < need:  # the child link of joint j has index j
-                inertia = pb.getDynamicsInfo(self.body, j, physicsClientId=c)[2]
+                inertia = pb.getDynamicsInfo(body, j, physicsClientId=c)[2]
                 raised = [v + need - m for v in inertia]
-                pb.changeDynamics(self.body, j, localInertiaDiagonal=raised, physicsClientId=c)
+                pb.changeDynamics(body, j, localInertiaDiagonal=raised, physicsClientId=c)
+
+    def _reshape(self) -> None:
+        """The plant's link masses and inertias: link i's scaled by its factor, the peg link's
+        mass raised by the payload (at its centre of mass)."""
+        c = self.client
+        factors = self.plant.link_factors(pb.getNumJoints(self.body, physicsClientId=c))
+        for link, f in enumerate(factors.tolist()):
+            mass, _, inertia = pb.getDynamicsInfo(self.body, link, physicsClientId=c)[:3]
+            mass = mass * f + (self.plant.payload if link == self.peg_link_id else 0.0)
+            pb.changeDynamics(
+                self.body,
+                link,
+                mass=mass,
+                localInertiaDiagonal=[v * f for v in inertia],
+                physicsClientId=c,
+            )
 
     def _build_hole(self) -> int:
         """Table slab with a square opening, four tilted guide plates and a floor (static)."""
@@ -252,10 +321,14 @@ class PegWorld:
         R = np.array(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
         return np.asarray(state[4]) + self.offsets @ R.T
 
-    def reset(self, q0: np.ndarray) -> np.ndarray:
-        """Put the arm at rest at ``q0`` and return the state."""
+    def reset(self, q0: np.ndarray, key: tuple[int, ...] = (0,)) -> np.ndarray:
+        """Put the arm at rest at ``q0``, with no command pending, and return the state; the
+        rollout's sensor noise is drawn from ``key`` (:meth:`PlantConfig.noise`)."""
         for j, qj in zip(self.joint_ids, q0, strict=True):
             pb.resetJointState(self.body, j, float(qj), 0.0, physicsClientId=self.client)
+        self._queue = np.zeros_like(self._queue)
+        self._issued = np.zeros_like(self._issued)
+        self._noise = self.plant.noise(key)
         self._prev_points = (self.points() - self.targets).reshape(6)
         return self.observe()  # zero point velocity at rest
 
@@ -274,31 +347,52 @@ class PegWorld:
         pts = (self.points() - self.targets).reshape(6)
         vel = (pts - self._prev_points) / self.config.dt
         self._points = pts
-        return np.concatenate([q, qd, pts, vel])
+        if self._noise is not None:
+            scale = self.plant.obs_noise
+            q = q + self._noise.normal(0.0, scale, q.shape)
+            qd = qd + self._noise.normal(0.0, VELOCITY_NOISE_RATIO * scale, qd.shape)
+        return np.concatenate([q, qd, pts, vel, self._issued.reshape(-1)])
 
     def step(self, u: np.ndarray) -> np.ndarray:
-        """Apply torque ``u`` (on top of gravity compensation) for one control step, starting
-        from the state the last :meth:`reset`, :meth:`observe` or :meth:`step` returned."""
-        c = self.client
+        """Issue torque ``u`` (on top of gravity compensation) for one control step, starting
+        from the state the last :meth:`reset`, :meth:`observe` or :meth:`step` returned; with a
+        delay of d physics steps, the commands issued d steps earlier act instead."""
+        c, substeps = self.client, self.config.substeps
         if not np.all(np.isfinite(u)):
             raise NumericalError("non-finite action: the controller produced NaN or inf torques")
-        zeros = [0.0] * len(self.movable)
-        g = np.asarray(
-            pb.calculateInverseDynamics(self.body, self._q_all, zeros, zeros, physicsClientId=c)
-        )[self.actuated_in_movable]
-        tau = np.clip(u + g, -self.effort, self.effort).tolist()
+        g = self.gravity_compensation()
+        held = np.concatenate([self._queue, np.broadcast_to(u, (substeps, len(u)))])
+        self._queue = held[substeps:]
+        # the commands as they act (within the effort limits): past commands beyond them
+        # would grow without bound under a controller that feeds them back
+        acting = np.clip(u + g, -self.effort, self.effort) - g
+        self._issued = np.concatenate([acting[None], self._issued])[: len(self._issued)]
         self._prev_points = self._points
-        for _ in range(self.config.substeps):
+        for s in range(substeps):
+            tau = np.clip(held[s] + g, -self.effort, self.effort).tolist()
             pb.setJointMotorControlArray(
                 self.body, self.joint_ids, pb.TORQUE_CONTROL, forces=tau, physicsClientId=c
             )
             pb.stepSimulation(physicsClientId=c)
         return self.observe()
 
+    def gravity_compensation(self) -> np.ndarray:
+        """``g(q) [dof]`` at the current joint angles, as the plant computes it: inverse
+        dynamics at rest of the simulated body (``plant``), of the URDF (``model``), or 0."""
+        if self.plant.gravity_compensation == "none":
+            return np.zeros(self.arm.dof)
+        client, body = (self.client, self.body)
+        if self.plant.gravity_compensation == "model":
+            client, body = self.reference
+        zeros = [0.0] * len(self.movable)
+        g = pb.calculateInverseDynamics(body, self._q_all, zeros, zeros, physicsClientId=client)
+        return np.asarray(g)[self.actuated_in_movable]
+
     def tip_distance(self) -> float:
         """Distance (m) from the peg tip to the hole-floor target."""
         return float(np.linalg.norm(self.points()[0] - self.targets[0]))
 
     def close(self) -> None:
-        if pb.isConnected(self.client):
-            pb.disconnect(self.client)
+        for client in {self.client, self.reference[0]}:
+            if pb.isConnected(client):
+                pb.disconnect(client)

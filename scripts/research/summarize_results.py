@@ -20,6 +20,7 @@ from lolgps_torch.cost.l12 import CostConfig
 from lolgps_torch.data.run_folder import RunFolder, as_stored, flatten
 from lolgps_torch.evaluation.evaluate import read_evaluation
 from lolgps_torch.lolgps import StreamConfig, method_config
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.world import WorldConfig
 
 PER_RUN = {"seed", "policy.seed"}  # settings every seed changes
@@ -43,6 +44,7 @@ def label(folder: str) -> str:
         "": (config["stream"], as_stored(asdict(method_config(method, StreamConfig())))),
         "cost.": (config["task"]["cost"], asdict(CostConfig())),
         "world.": (config["task"]["world"], asdict(WorldConfig())),
+        "plant.": (config["task"].get("plant", {}), asdict(PlantConfig())),
     }
     extras = []
     for prefix, (saved, default) in sections.items():
@@ -50,7 +52,7 @@ def label(folder: str) -> str:
         extras += [
             f"{prefix}{key} {value}"
             for key, value in mine.items()
-            if key not in PER_RUN and value != defaults.get(key)
+            if f"{prefix}{key}" not in PER_RUN and value != defaults.get(key)
         ]
     if method == "lolgps":
         stream = config["stream"]
@@ -72,6 +74,23 @@ def training_table(runs: list[str]) -> None:
             for e in entries
         )
         print(f"| {folder} | {label(folder)} | {s['seed']} | {solved}/{len(entries)} | {cells} |")
+
+
+def local_table(runs: list[str]) -> None:
+    """Per run: positions the final policy inserts at, the local controllers' worst final
+    distance and how many succeeded, the rollouts and the conditions that failed."""
+    print("| run | settings | policy (end) | worst p_cur (m) | p_cur succeeds | rollouts |")
+    print("|---|---|---|---|---|---|")
+    for folder in runs:
+        entries = RunFolder(folder).read_summary()["conditions"]
+        solved = sum(bool(e["policy_success_end"]) for e in entries)
+        worst = max(e["local_final_distance"] for e in entries)
+        local = sum(bool(e["local_success"]) for e in entries)
+        rollouts = sum(e["rollouts"] for e in entries)
+        print(
+            f"| {folder} | {label(folder)} | {solved}/{len(entries)} | {worst:.3f} | "
+            f"{local}/{len(entries)} | {rollouts} |"
+        )
 
 
 def eval_tables(runs: list[str]) -> None:
@@ -141,7 +160,15 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("runs", nargs="+", help="run folders")
+    parser.add_argument(
+        "--local",
+        action="store_true",
+        help="instead: the local controllers' worst distance and successes and the rollouts",
+    )
     args = parser.parse_args()
+    if args.local:
+        local_table(args.runs)
+        return
     training_table(args.runs)
     eval_tables(args.runs)
 

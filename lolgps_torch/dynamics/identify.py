@@ -1,0 +1,251 @@
+"""The arm's physical parameters identified from its rollouts, pulled toward its URDF.
+
+The parameters θ (:class:`ArmParameters`) say how the arm differs from the URDF's rigid-body
+model: body k's mass, first moment and rotational inertia scaled by ``s_k`` (a denser or
+lighter link), a point payload of mass ``m_p`` at ``c_p`` in the last body's frame, viscous
+damping ``Δb`` added to the URDF's, Coulomb friction ``F``, and the gravity compensation the
+arm applies, ``c(q) = κ g_0(q)`` (g_0 the URDF's gravity torque: κ = 1 compensates the arm as
+its URDF describes it, 0 not at all; an arm that compensates its own payload shows as one
+whose payload weighs nothing and still has its inertia).
+
+A transition ``(q_0, qd_0) -> (q_1, qd_1)`` over the control step dt under the command u (held
+over the step) balances, at the midpoint ``qm = (q_0 + q_1) / 2``, ``qdm = (qd_0 + qd_1) / 2``
+with the mean acceleration ``a = (qd_1 - qd_0) / dt``, the torque residual
+
+    ``r = ID_θ(qm, qdm, a) - tau_link(qm, qdm) + (b + Δb) qdm + F tanh(qdm / v_F)
+          - clip(u + c(q_0), -effort, effort)``
+
+(ID_θ the recursive Newton-Euler inverse dynamics of the identified bodies, tau_link the
+generalised force of the simulator's link damping, b the URDF's joint damping). θ is the MAP
+estimate under Gaussian torque noise σ_τ and a Gaussian prior centred on the URDF
+(``s = 1``, ``m_p = 0``, ``c_p`` at the peg tip, ``Δb = F = 0``, ``κ = 1``):
+
+    ``min_θ  sum_t |r_t|^2 / σ_τ^2 + sum_i (θ_i - θ0_i)^2 / σ_i^2``
+
+solved by Levenberg-Marquardt: Gauss-Newton steps ``(J^T J + λ diag(J^T J)) δ = -J^T R`` on
+the stacked, whitened residuals R, with the Jacobian J through the torch rigid-body model
+(:mod:`lolgps_torch.robot.rigid_body`) by forward-mode differentiation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.robot.rigid_body import ArmDynamics, BodyParameters
+from lolgps_torch.state import StateLayout
+
+
+@dataclass(frozen=True)
+class IdentifyConfig:
+    """The identification's noise model, prior and solver.
+
+    :param torque_noise: σ_τ, the standard deviation of the torque residual (N m).
+    :param scale_sd: prior standard deviation of each body's scale s_k.
+    :param payload_sd: prior standard deviation of the payload's mass (kg).
+    :param payload_com_sd: prior standard deviation of the payload's position (m).
+    :param damping_sd: prior standard deviation of the added damping (N m s/rad).
+    :param friction_sd: prior standard deviation of the Coulomb friction (N m).
+    :param compensation_sd: prior standard deviation of κ.
+    :param friction_speed: v_F, the joint speed (rad/s) over which the friction's sign is
+        smoothed.
+    :param iterations: at most this many Levenberg-Marquardt steps.
+    :param tolerance: stop once a step changes the objective by less than this fraction.
+    """
+
+    torque_noise: float = 0.5
+    scale_sd: float = 0.3
+    payload_sd: float = 2.0
+    payload_com_sd: float = 0.1
+    damping_sd: float = 1.0
+    friction_sd: float = 1.0
+    compensation_sd: float = 0.02
+    friction_speed: float = 0.01
+    iterations: int = 30
+    tolerance: float = 1e-9
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not (math.isfinite(value) and value > 0):
+                raise LolgpsError(f"identification {f.name} must be positive, got {value}")
+
+
+@dataclass(frozen=True)
+class ArmParameters:
+    """θ: how the arm differs from its URDF (module docstring).
+
+    :param mass_scale: s ``[n]``. :param payload: m_p ``[]`` (kg).
+    :param payload_com: c_p ``[3]`` in the last body's frame (m).
+    :param damping: Δb ``[n]``. :param friction: F ``[n]``.
+    :param compensation: κ ``[]``.
+    """
+
+    mass_scale: Tensor
+    payload: Tensor
+    payload_com: Tensor
+    damping: Tensor
+    friction: Tensor
+    compensation: Tensor
+
+    @staticmethod
+    def urdf(dynamics: ArmDynamics) -> ArmParameters:
+        """The prior's centre: the URDF's arm, compensated by its URDF, a payload of 0 at the
+        peg tip."""
+        n, like = dynamics.n, dynamics.body.mass
+        q = like.new_zeros(n)
+        frames = dynamics.frames(q)
+        tip = dynamics.points(frames)[0]
+        tip_in_last = frames.R[-1].T @ (tip - frames.p[-1])
+        zeros = like.new_zeros(n)
+        return ArmParameters(
+            like.new_ones(n), like.new_zeros(()), tip_in_last, zeros, zeros, like.new_ones(())
+        )
+
+    def flat(self) -> Tensor:
+        """θ as one vector ``[3n + 5]`` in field order."""
+        return torch.cat([getattr(self, f.name).reshape(-1) for f in fields(self)])
+
+    def unflat(self, theta: Tensor) -> ArmParameters:
+        """Parameters shaped as these from the vector ``theta`` (:meth:`flat`'s inverse)."""
+        parts, start = {}, 0
+        for f in fields(self):
+            like = getattr(self, f.name)
+            parts[f.name] = theta[start : start + like.numel()].reshape(like.shape)
+            start += like.numel()
+        return ArmParameters(**parts)
+
+    def prior_sd(self, config: IdentifyConfig) -> Tensor:
+        """The prior's standard deviation per entry of :meth:`flat`."""
+        sd = {
+            "mass_scale": config.scale_sd,
+            "payload": config.payload_sd,
+            "payload_com": config.payload_com_sd,
+            "damping": config.damping_sd,
+            "friction": config.friction_sd,
+            "compensation": config.compensation_sd,
+        }
+        return torch.cat(
+            [torch.full_like(getattr(self, f.name).reshape(-1), sd[f.name]) for f in fields(self)]
+        )
+
+
+class Transitions(NamedTuple):
+    """Observed control steps ``[B, n]`` each: start angles and velocities, the command, end
+    angles and velocities."""
+
+    q0: Tensor
+    qd0: Tensor
+    u: Tensor
+    q1: Tensor
+    qd1: Tensor
+
+    @staticmethod
+    def from_rollouts(x: Tensor, u: Tensor, layout: StateLayout, keep: Tensor) -> Transitions:
+        """The transitions of rollouts ``x: [N, T+1, dX]`` (the final state included),
+        ``u: [N, T, dU]`` where ``keep: [N, T]`` (e.g. free of contact)."""
+        start, end = x[:, :-1][keep], x[:, 1:][keep]
+        return Transitions(
+            start[:, layout.q], start[:, layout.qd], u[keep], end[:, layout.q], end[:, layout.qd]
+        )
+
+
+def identified_dynamics(dynamics: ArmDynamics, params: ArmParameters) -> ArmDynamics:
+    """``dynamics`` with θ's bodies and damping: body k's inertial parameters times s_k, the
+    payload's mass m_p, first moment ``m_p c_p`` and inertia ``m_p (|c_p|^2 1 - c_p c_p^T)``
+    added to the last body."""
+    body, s = dynamics.body, params.mass_scale
+    last = torch.zeros_like(s)
+    last[-1] = 1.0
+    m, c = params.payload, params.payload_com
+    point = m * (c.dot(c) * torch.eye(3, dtype=c.dtype, device=c.device) - torch.outer(c, c))
+    scaled = BodyParameters(
+        mass=s * body.mass + last * m,
+        first_moment=s[:, None] * body.first_moment + last[:, None] * (m * c),
+        inertia=s[:, None, None] * body.inertia + last[:, None, None] * point,
+        link_body=body.link_body,
+        link_mass=s[body.link_body] * body.link_mass,
+        link_com=body.link_com,
+        link_inertia=s[body.link_body, None, None] * body.link_inertia,
+    )
+    return dynamics.with_parameters(scaled, dynamics.joint_damping + params.damping)
+
+
+class TorqueBalance(NamedTuple):
+    """What the residual needs besides θ and the data: the URDF's dynamics, the actuator
+    limits ``[n]``, the control step (s) and the simulator's link damping (linear, angular)."""
+
+    dynamics: ArmDynamics
+    effort: Tensor
+    dt: float
+    link_damping: tuple[float, float]
+
+    def applied(self, params: ArmParameters, q: Tensor, u: Tensor) -> Tensor:
+        """``clip(u + κ g_0(q), -effort, effort)``."""
+        torque = u + params.compensation * self.dynamics.gravity_torque(q)
+        return torch.minimum(torch.maximum(torque, -self.effort), self.effort)
+
+    def residual(self, params: ArmParameters, data: Transitions, config: IdentifyConfig) -> Tensor:
+        """``r / σ_τ: [B, n]`` (module docstring)."""
+        dyn = identified_dynamics(self.dynamics, params)
+        qm, qdm = (data.q0 + data.q1) / 2, (data.qd0 + data.qd1) / 2
+        frames = dyn.frames(qm)
+        wrench = dyn.link_damping(frames, qdm, *self.link_damping)
+        needed = dyn.inverse_dynamics_at(frames, qdm, (data.qd1 - data.qd0) / self.dt, wrench)
+        needed = needed + dyn.joint_damping * qdm
+        needed = needed + params.friction * torch.tanh(qdm / config.friction_speed)
+        return (needed - self.applied(params, data.q0, data.u)) / config.torque_noise
+
+
+def objective(
+    balance: TorqueBalance,
+    prior: ArmParameters,
+    data: Transitions,
+    config: IdentifyConfig,
+    theta: Tensor,
+) -> Tensor:
+    """The stacked whitened residuals R(θ) (torques, then the prior's), ``|R|^2`` the MAP
+    objective."""
+    params = prior.unflat(theta)
+    torques = balance.residual(params, data, config).reshape(-1)
+    return torch.cat([torques, (theta - prior.flat()) / prior.prior_sd(config)])
+
+
+def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) -> ArmParameters:
+    """The MAP θ by Levenberg-Marquardt from the prior's centre (module docstring)."""
+    if data.q0.shape[0] == 0:
+        raise LolgpsError("identification needs at least one transition")
+    prior = ArmParameters.urdf(balance.dynamics)
+
+    def stacked(theta: Tensor) -> Tensor:
+        return objective(balance, prior, data, config, theta)
+
+    theta, damping = prior.flat(), 1e-3
+    residual = stacked(theta)
+    cost = float(residual.square().sum())
+    for _ in range(config.iterations):
+        J = torch.autograd.functional.jacobian(
+            stacked, theta, vectorize=True, strategy="forward-mode"
+        )
+        H, g = J.T @ J, J.T @ residual
+        scale = torch.diagonal(H).clamp_min(1e-12)
+        while True:
+            step = torch.linalg.solve(H + damping * torch.diag(scale), -g)
+            trial = stacked(theta + step)
+            trial_cost = float(trial.square().sum())
+            if trial_cost <= cost or damping > 1e12:
+                break
+            damping *= 10.0
+        if trial_cost > cost:
+            break
+        gain = (cost - trial_cost) / max(cost, 1e-300)
+        theta, residual, cost = theta + step, trial, trial_cost
+        damping = max(damping / 10.0, 1e-9)
+        if gain < config.tolerance:
+            break
+    return prior.unflat(theta)
