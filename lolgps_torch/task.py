@@ -26,14 +26,15 @@ from lolgps_torch.dynamics.identify import (
     identify,
 )
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import PegConfig, load_arm
+from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.ik import solve_ik
 from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.peg import PegConfig
 from lolgps_torch.robot.placement import (
     PlacementConfig,
     pinned,
     place_task,
     reach,
-    solve_ik,
     vertical_peg_targets,
 )
 from lolgps_torch.robot.spec import ArmSpec

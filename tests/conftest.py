@@ -235,13 +235,8 @@ def check_published_arm(
 
     from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
     from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
-    from lolgps_torch.robot.placement import (
-        PlacementConfig,
-        follow,
-        generic_rank,
-        reach,
-        solve_ik_batch,
-    )
+    from lolgps_torch.robot.ik import follow, generic_rank, solve_ik_batch
+    from lolgps_torch.robot.placement import PlacementConfig, reach
     from lolgps_torch.robot.validate import ArmWarning
     from lolgps_torch.sim.world import WorldConfig
     from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled
@@ -265,7 +260,7 @@ def check_published_arm(
         assert fk_gap(task) < 1e-6
         _, error = solve_ik_batch(task.kinematics, task.arm, task.targets(list(stream)), margin=0.0)
         assert float(error.max()) <= placement.ik_tolerance
-        # and from the start pose, continuously, as a controller would move (placement.follow)
+        # and from the start pose, continuously, as a controller would move (ik.follow)
         rank = generic_rank(task.kinematics, task.q0 + 0.1 * torch.randn(8, task.arm.dof))
         error, least = follow(task.kinematics, task.arm, task.q0, task.targets(list(stream)), rank)
         assert float(error.max()) <= placement.ik_tolerance

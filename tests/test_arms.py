@@ -23,8 +23,9 @@ from conftest import ScriptRun, check_published_arm
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
-from lolgps_torch.robot.arm import PegConfig, load_arm
+from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.peg import PegConfig
 from lolgps_torch.robot.placement import PlacementConfig
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb

@@ -31,8 +31,9 @@ from lolgps_torch.evaluation.scene import BACKGROUND, BARE_ARM, Scene, camera_fo
 from lolgps_torch.lolgps.run import LoadedRun, load_run
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.net import GaussianPolicy
-from lolgps_torch.robot.arm import PegConfig, load_arm
-from lolgps_torch.robot.placement import solve_ik
+from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.ik import solve_ik
+from lolgps_torch.robot.peg import PegConfig
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.types import ConditionSamples, LinearGaussian

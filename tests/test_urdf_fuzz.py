@@ -24,7 +24,8 @@ import torch
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
-from lolgps_torch.robot.placement import PlacementConfig, solve_ik
+from lolgps_torch.robot.ik import solve_ik
+from lolgps_torch.robot.placement import PlacementConfig
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
 

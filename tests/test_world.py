@@ -14,14 +14,12 @@ import torch
 from lolgps_torch.cost.l12 import CostConfig, PegCost, to_quadratic
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.ik import follow, generic_rank, solve_ik
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import (
     PlacementConfig,
-    follow,
-    generic_rank,
     place_task,
     reach,
-    solve_ik,
     vertical_peg_targets,
 )
 from lolgps_torch.sim.rollout import linear_gaussian_actor

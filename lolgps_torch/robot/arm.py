@@ -7,15 +7,12 @@ evaluation's workers) do not pay for them.
 
 An :class:`ArmSpec` is the single description that drives both PyBullet (joint names are
 mapped to body joint indices) and pytorch-kinematics (the serial chain to the point
-frame), so the two cannot disagree.
+frame), so the two cannot disagree; the peg it ends in is :mod:`.peg`'s.
 
-The peg.  Every arm ends in a *point frame* whose origin is the peg tip and whose +z axis
-points out along the peg.  A URDF that carries its own peg names that frame ``peg_tip``
-(its parent link is the peg's collision body).  Otherwise a peg of the configured length
-and radius is attached to the end-effector link along ``PegConfig.axis``: the URDF text
-is extended with two fixed links (``lolgps_peg`` and ``lolgps_peg_tip``).  The two
-end-effector points of the state are the tip, ``(0, 0, 0)``, and the top,
-``(0, 0, -point_separation)``, in the point frame.
+The module is one concern, turning a published URDF into that description, and its parts are
+the loader's steps in order: the chain from the base link to the end effector, the joints held
+off it, the derived effort limits, and the text both readers accept (meshes resolved, unused
+shapes and other tools' extensions dropped); it stays whole for that reason.
 """
 
 from __future__ import annotations
@@ -29,8 +26,8 @@ import re
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Literal
+from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -38,6 +35,15 @@ import torch
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.effort import EFFORT_MARGIN, derived_effort
 from lolgps_torch.robot.packages import resolve_mesh
+from lolgps_torch.robot.peg import (
+    ATTACHED_PEG,
+    ATTACHED_PEG_TIP,
+    CARRIED_PEG_TIP,
+    PegConfig,
+    attach_peg,
+    auto_axis,
+    carried_peg_radius,
+)
 from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import (
@@ -50,9 +56,6 @@ from lolgps_torch.robot.validate import (
 if TYPE_CHECKING:
     import yourdfpy
 
-CARRIED_PEG_TIP = "peg_tip"
-ATTACHED_PEG = "lolgps_peg"
-ATTACHED_PEG_TIP = "lolgps_peg_tip"
 _ACTUATED = ("revolute", "continuous")
 _HELD = ("revolute", "continuous", "prismatic")  # the moving joints a position can be held at
 _DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
@@ -65,49 +68,6 @@ _INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 _GRIPPER_WORDS = ("finger", "grip", "jaw", "knuckle", "claw", "thumb")
 # words in the link names of sensors mounted on a wrist, which are no tool frame
 _SENSOR_WORDS = ("camera", "optical", "imu", "accel", "lidar", "laser", "range", "depth")
-# rpy that turns the point frame's +z onto each supported peg axis of the end-effector link.
-_AXIS_RPY = {
-    "x": (0.0, math.pi / 2, 0.0),
-    "-x": (0.0, -math.pi / 2, 0.0),
-    "y": (-math.pi / 2, 0.0, 0.0),
-    "-y": (math.pi / 2, 0.0, 0.0),
-    "z": (0.0, 0.0, 0.0),
-    "-z": (math.pi, 0.0, 0.0),
-}
-
-
-PegAxis = Literal["auto", "x", "y", "z", "-x", "-y", "-z"]
-
-
-@dataclass(frozen=True)
-class PegConfig:
-    """The peg attached to arms whose URDF has none (m), and the end-effector point spacing.
-
-    :param length: peg length along ``axis`` from the end-effector link origin.
-    :param radius: peg radius.
-    :param axis: the end-effector link axis the peg points along: x, y, z, -x, -y or -z, or
-        auto: the axis nearest the direction from the last actuated joint to the end-effector
-        link (or, where they coincide, the last joint's roll axis; else z).
-    :param point_separation: distance from the tip to the second (top) point on the axis.
-    """
-
-    length: float = 0.20
-    radius: float = 0.015
-    axis: PegAxis = "auto"
-    point_separation: float = 0.15
-
-    def __post_init__(self) -> None:
-        for flag, value in (
-            ("--peg-length", self.length),
-            ("--peg-radius", self.radius),
-            ("point separation", self.point_separation),
-        ):
-            if not (math.isfinite(value) and value > 0):
-                raise LolgpsError(f"{flag} must be a positive length (m), got {value}")
-        if self.axis != "auto" and self.axis not in _AXIS_RPY:
-            raise LolgpsError(
-                f"--peg-axis must be auto or one of {', '.join(_AXIS_RPY)}, got {self.axis!r}"
-            )
 
 
 def load_arm(
@@ -148,7 +108,7 @@ def load_arm(
     carries_peg = CARRIED_PEG_TIP in links and ee_link == CARRIED_PEG_TIP
     if carries_peg:
         point_link, peg_link = CARRIED_PEG_TIP, parent_joint[CARRIED_PEG_TIP].parent
-        peg_radius = _cylinder_radius(robot, peg_link, path)
+        peg_radius = carried_peg_radius(robot, peg_link, path)
     else:
         if ATTACHED_PEG in links:
             raise LolgpsError(
@@ -158,8 +118,8 @@ def load_arm(
     text = _portable_text(tree, path, package_path, peg_link)
     axis = ""
     if not carries_peg:
-        axis = _auto_axis(chain, actuated) if peg.axis == "auto" else peg.axis
-        text = _attach_peg(text, ee_link, peg, axis)
+        axis = auto_axis(chain, actuated) if peg.axis == "auto" else peg.axis
+        text = attach_peg(text, ee_link, peg, axis)
     massless = check_moved_mass(text, path)
 
     lims = [_limits(j) for j in actuated]
@@ -565,13 +525,6 @@ def _axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
 
 
-def _cylinder_radius(robot: yourdfpy.URDF, link: str, path: str) -> float:
-    for collision in robot.link_map[link].collisions:
-        if collision.geometry.cylinder is not None:
-            return float(collision.geometry.cylinder.radius)
-    raise LolgpsError(f"{path}: peg link {link!r} (parent of {CARRIED_PEG_TIP!r}) has no cylinder")
-
-
 def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg_link: str) -> str:
     """The URDF as text both PyBullet and pytorch-kinematics accept from any folder, and read
     alike: mesh paths resolved to absolute ones (:mod:`.packages`), collision shapes of arm
@@ -610,29 +563,6 @@ def _drop_namespaced(element: ET.Element) -> None:
             element.remove(child)
         else:
             _drop_namespaced(child)
-
-
-def _auto_axis(chain: list[yourdfpy.Joint], actuated: list[yourdfpy.Joint]) -> str:
-    """The end-effector link axis (+-x, y, z) nearest the direction, at q = 0, from the last
-    actuated joint's origin to the link's origin; where the two coincide, the last joint's
-    axis if it rolls along the arm (parallel, within 25 degrees, to the step from the joint
-    before it), pointing away from that joint; otherwise z."""
-    pose, joints = np.eye(4), []
-    for j in chain:
-        pose = pose @ (j.origin if j.origin is not None else np.eye(4))
-        if j in actuated:
-            axis = np.asarray(j.axis if j.axis is not None else (1.0, 0.0, 0.0), dtype=float)
-            joints.append((pose[:3, 3].copy(), pose[:3, :3] @ (axis / np.linalg.norm(axis))))
-    out = pose[:3, 3] - joints[-1][0]
-    if np.linalg.norm(out) < 1e-3:
-        step = joints[-1][0] - joints[-2][0] if len(joints) > 1 else np.zeros(3)
-        along = float(joints[-1][1] @ step)
-        if np.linalg.norm(step) < 1e-6 or abs(along) < 0.9 * np.linalg.norm(step):
-            return "z"
-        out = joints[-1][1] * np.sign(along)
-    local = pose[:3, :3].T @ out
-    i = int(np.argmax(np.abs(local)))
-    return ("-" if local[i] < 0 else "") + "xyz"[i]
 
 
 def _drop_unused_shapes(
@@ -677,34 +607,3 @@ def _drop_unused_shapes(
             ArmWarning,
             stacklevel=3,
         )
-
-
-def _attach_peg(text: str, ee_link: str, peg: PegConfig, axis: str) -> str:
-    """Append a peg cylinder and its tip frame, fixed to ``ee_link`` along ``axis``."""
-    r, p, y = _AXIS_RPY[axis]
-    half = peg.length / 2
-    inertia = 0.2 * (3 * peg.radius**2 + peg.length**2) / 12
-    xml = f"""
-  <link name="{ATTACHED_PEG}">
-    <inertial><origin xyz="0 0 {half}"/><mass value="0.2"/>
-      <inertia ixx="{inertia}" iyy="{inertia}" izz="{0.1 * peg.radius**2}" ixy="0" ixz="0" iyz="0"/>
-    </inertial>
-    <visual><origin xyz="0 0 {half}"/>
-      <geometry><cylinder radius="{peg.radius}" length="{peg.length}"/></geometry></visual>
-    <collision><origin xyz="0 0 {half}"/>
-      <geometry><cylinder radius="{peg.radius}" length="{peg.length}"/></geometry></collision>
-  </link>
-  <joint name="{ATTACHED_PEG}_joint" type="fixed">
-    <parent link="{ee_link}"/><child link="{ATTACHED_PEG}"/><origin rpy="{r} {p} {y}"/>
-  </joint>
-  <link name="{ATTACHED_PEG_TIP}">
-    <inertial><mass value="0.001"/>
-      <inertia ixx="1e-6" iyy="1e-6" izz="1e-6" ixy="0" ixz="0" iyz="0"/></inertial>
-  </link>
-  <joint name="{ATTACHED_PEG_TIP}_joint" type="fixed">
-    <parent link="{ATTACHED_PEG}"/><child link="{ATTACHED_PEG_TIP}"/>
-    <origin xyz="0 0 {peg.length}"/>
-  </joint>
-"""
-    end = text.rfind("</robot>")
-    return text[:end] + xml + text[end:]
