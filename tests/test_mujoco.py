@@ -100,7 +100,8 @@ def test_state_and_free_rollout_match_pybullet(arm: ArmSpec) -> None:
 
 def test_ci_stream_learns_in_mujoco(tmp_path: Path, run_script: Callable[..., ScriptRun]) -> None:
     """The CI-sized stream at one condition in MuJoCo: the local controller and the policy
-    insert the peg, and the run records the simulator, which evaluation rebuilds."""
+    insert the peg, and the run records the simulator; ``evaluate.py --sim pybullet`` tests
+    the policy in the other simulator."""
     conditions = tmp_path / "conditions.json"
     conditions.write_text(json.dumps([[0.0, 0.0]]))
     out = tmp_path / "run"
@@ -112,6 +113,10 @@ def test_ci_stream_learns_in_mujoco(tmp_path: Path, run_script: Callable[..., Sc
     (entry,) = json.loads((out / "summary.json").read_text())["conditions"]
     assert entry["local_success"]
     assert entry["policy_final_distance_end"] < WorldConfig().success_threshold
+    evaluated = run_script("scripts/evaluate.py", "--run", str(out), "--positions",
+                           str(conditions), "--workers", "1", "--sim", "pybullet")  # fmt: skip
+    assert evaluated.code == 0, evaluated.err[-2000:]
+    assert json.loads((out / "eval.json").read_text())["sim"] == "pybullet"
 
 
 def test_plant_variations_and_a_missing_engine_are_one_line_errors(
