@@ -15,13 +15,11 @@ import pytest
 import torch
 from conftest import ROOT, SMALL, ScriptRun
 
-from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim import simulator
 from lolgps_torch.sim.simulator import WorldConfig, build_world
-from lolgps_torch.task import TaskConfig
 
 mujoco = pytest.importorskip("mujoco")
 
@@ -127,6 +125,13 @@ def test_plant_variations_and_a_missing_engine_are_one_line_errors(
     assert result.code == 2
     assert result.err.startswith("error: --sim mujoco simulates the arm as its URDF")
     assert not (tmp_path / "run").exists()
-    monkeypatch.setattr(simulator.importlib.util, "find_spec", lambda name: None)
-    with pytest.raises(LolgpsError, match=r"pip install -e '\.\[mujoco\]'"):
-        TaskConfig(urdf=ARMS["kuka"], sim="mujoco")
+    find_spec = simulator.importlib.util.find_spec
+    monkeypatch.setattr(simulator.importlib.util, "find_spec",
+                        lambda name, *rest: None if name == "mujoco" else find_spec(name, *rest))  # fmt: skip
+    result = run_script("scripts/run_stream.py", "--urdf", ARMS["kuka"], "--sim", "mujoco",
+                        "--out", str(tmp_path / "run"))  # fmt: skip
+    assert result.code == 2
+    assert result.err == (
+        "error: --sim mujoco needs MuJoCo, which is not installed: pip install -e '.[mujoco]'\n"
+    )
+    assert not (tmp_path / "run").exists()
