@@ -128,6 +128,9 @@ class MujocoWorld(World):
         # implicit, which damps the light wrist joints far less within a physics step)
         self.damping = m.dof_damping[self.dof_ids].copy()
         m.dof_damping[:] = 0.0
+        # no Coulomb friction: the nominal plant has none (PyBullet's world overrides a URDF's
+        # <dynamics friction> with --joint-friction, 0), MuJoCo's compiler would keep it
+        m.dof_frictionloss[:] = 0.0
         self.set_hole((0.0, 0.0))
 
     def _compile(self) -> mujoco.MjModel:
