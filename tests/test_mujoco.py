@@ -99,7 +99,7 @@ def test_state_and_free_rollout_match_pybullet(arm: ArmSpec) -> None:
 def test_ci_stream_learns_in_mujoco(tmp_path: Path, run_script: Callable[..., ScriptRun]) -> None:
     """The CI-sized stream at one condition in MuJoCo: the local controller and the policy
     insert the peg, and the run records the simulator; ``evaluate.py --sim pybullet`` tests
-    the policy in the other simulator."""
+    the policy in the other simulator, and ``render.py`` films it in the run's."""
     conditions = tmp_path / "conditions.json"
     conditions.write_text(json.dumps([[0.0, 0.0]]))
     out = tmp_path / "run"
@@ -115,6 +115,11 @@ def test_ci_stream_learns_in_mujoco(tmp_path: Path, run_script: Callable[..., Sc
                            str(conditions), "--workers", "1", "--sim", "pybullet")  # fmt: skip
     assert evaluated.code == 0, evaluated.err[-2000:]
     assert json.loads((out / "eval.json").read_text())["sim"] == "pybullet"
+    video = tmp_path / "policy.gif"
+    rendered = run_script("scripts/render.py", "--run", str(out), "--out", str(video),
+                          "--size", "64", "48", "--every", "50")  # fmt: skip
+    assert rendered.code == 0, rendered.err[-2000:]
+    assert video.stat().st_size > 0
 
 
 def test_plant_variations_and_a_missing_engine_are_one_line_errors(
