@@ -20,6 +20,7 @@ from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim import simulator
 from lolgps_torch.sim.simulator import WorldConfig, build_world
+from lolgps_torch.task import PegTask, TaskConfig
 
 mujoco = pytest.importorskip("mujoco")
 
@@ -94,6 +95,28 @@ def test_state_and_free_rollout_match_pybullet(arm: ArmSpec) -> None:
     assert first < 1e-3 * max(1.0, np.abs(pybullet[1, lay.qd]).max())
     assert np.abs(mujoco_run[:, :n] - pybullet[:, :n]).max() < 1e-3
     assert np.abs(mujoco_run[:, lay.points] - pybullet[:, lay.points]).max() < 1e-3
+
+
+def test_the_table_stops_the_peg_as_in_pybullet() -> None:
+    """Pushed down by 30 N beside the hole, the peg's tip comes to rest on the table in MuJoCo
+    within 2 mm of where it does in PyBullet, and never passes through it."""
+    task = PegTask(TaskConfig(urdf=ARMS["kuka"]), n_worlds=1)
+    lay, depth = task.layout, task.config.world.depth
+    lowest = {}
+    for name in ("pybullet", "mujoco"):
+        world = build_world(name, task.arm, task.config.world, task.geometry.nominal_mouth)
+        world.set_hole((0.1, 0.0))  # the table under the peg
+        x = world.reset(np.asarray(task.geometry.q0))
+        heights = []
+        for _ in range(40):
+            _, jacobian = task.kinematics.points_and_jacobian(torch.as_tensor(x[lay.q]))
+            x = world.step(-30.0 * jacobian[2].numpy())  # the tip's z row
+            heights.append(x[lay.points][2])  # above the hole's floor
+        world.close()
+        lowest[name] = min(heights)
+    task.close()
+    assert depth - 0.002 < lowest["mujoco"] < depth + 0.005  # the table's surface is at depth
+    assert abs(lowest["mujoco"] - lowest["pybullet"]) < 0.002
 
 
 def test_ci_stream_learns_in_mujoco(tmp_path: Path, run_script: Callable[..., ScriptRun]) -> None:
