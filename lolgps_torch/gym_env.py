@@ -42,7 +42,7 @@ import torch
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.kinematics import PegKinematics
-from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.sim.simulator import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig, task_config_from_dict
 
 DEFAULT_URDF = str(Path(__file__).resolve().parent / "robot" / "data" / "kuka_peg.urdf")

@@ -42,9 +42,14 @@ from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
-from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
-from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.sim.simulator import (
+    Simulator,
+    WorldConfig,
+    check_plant,
+    engine_errors,
+    require,
+)
 from lolgps_torch.types import Trajectories
 
 IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses
@@ -66,7 +71,9 @@ class TaskConfig:
     :param scale: the factor the stream's geometry is scaled by to fit the arm (hole offsets,
         test areas, the start height and an attached peg's length; :func:`scaled`); the hole's
         depth and clearances stay as they are.
-    :param plant: how the simulated arm departs from the URDF; only the worlds read it."""
+    :param plant: how the simulated arm departs from the URDF; only the worlds read it.
+    :param sim: the simulator that steps the worlds: pybullet, or mujoco (the nominal plant
+        only; ``pip install -e '.[mujoco]'``)."""
 
     urdf: str
     ee_link: str | None = None
@@ -79,6 +86,7 @@ class TaskConfig:
     placement: PlacementConfig = field(default_factory=PlacementConfig)
     cost: CostConfig = field(default_factory=CostConfig)
     plant: PlantConfig = field(default_factory=PlantConfig)
+    sim: Simulator = "pybullet"
 
     def __post_init__(self) -> None:
         if self.ee_link is not None and not self.ee_link:
@@ -102,6 +110,10 @@ class TaskConfig:
             if not isinstance(getattr(self, name), kind):
                 raise LolgpsError(f"task {name} settings must be a {kind.__name__}")
         self.plant.delay_steps(self.world.dt / self.world.substeps)
+        if self.sim not in ("pybullet", "mujoco"):
+            raise LolgpsError(f"--sim must be pybullet or mujoco, got {self.sim!r}")
+        check_plant(self.sim, self.plant)
+        require(self.sim)
 
     def held(self) -> dict[str, float]:
         """The ``hold`` pairs as joint -> position; a malformed pair is a :class:`LolgpsError`."""
@@ -228,12 +240,18 @@ class PegTask:
                 n_worlds,
                 device,
                 config.plant,
+                config.sim,
             )
-        except (pb.error, torch.linalg.LinAlgError) as error:
+        except (*engine_errors(config.sim), torch.linalg.LinAlgError) as error:
             message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
             raise LolgpsError(f"{config.urdf}: the arm cannot be simulated: {message}") from None
         setup = WorldSetup(
-            self.arm, config.world, self.geometry.nominal_mouth, self.geometry.q0, config.plant
+            self.arm,
+            config.world,
+            self.geometry.nominal_mouth,
+            self.geometry.q0,
+            config.plant,
+            config.sim,
         )
         parallel = workers > 1 and self.device.type == "cpu"
         self.pool = RolloutPool(setup, workers, self.sampler) if parallel else None
@@ -312,21 +330,11 @@ class PegTask:
         """``1 / diag(M(q0)^{-1})`` per actuated joint (kg m^2): the inertia each joint feels,
         in the URDF's arm (not the plant's)."""
         world = self.sampler.worlds[0]
-        client, body = world.reference
-        q_all = [0.0] * len(world.movable)
-        for j, i in zip(world.actuated_in_movable, range(self.arm.dof), strict=True):
-            q_all[j] = self.geometry.q0[i]
-        M = torch.tensor(pb.calculateMassMatrix(body, q_all, physicsClientId=client))
-        idx = torch.tensor(world.actuated_in_movable)
-        Minv = torch.linalg.inv(M)[idx][:, idx]
-        return (1.0 / torch.diagonal(Minv)).to(dtype=torch.float64, device=self.device)
+        return world.effective_inertia(self.geometry.q0).to(self.device)
 
     def joint_damping(self) -> Tensor:
         """The joint damping b (N m s/rad) of the URDF, per actuated joint."""
-        world = self.sampler.worlds[0]
-        client, body = world.reference
-        b = [pb.getJointInfo(body, j, physicsClientId=client)[6] for j in world.joint_ids]
-        return torch.tensor(b, dtype=torch.float64, device=self.device)
+        return self.sampler.worlds[0].joint_damping().to(self.device)
 
     def sample(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
         """One rollout per offset, each run alone (on the worker processes, if any), scored by

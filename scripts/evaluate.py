@@ -14,12 +14,15 @@ another run's summary.json for forward transfer. ``--ray`` runs the rollouts on 
 local instance, or the cluster at ADDRESS) instead of processes, with the same results.
 The rollouts run on the run's own plant (config.json's ``task.plant``); the plant flags
 (``--payload``, ``--action-delay``, ...) change it, each one left out keeping the run's.
+They run in the run's own simulator (``task.sim``) unless ``--sim`` names another: a policy
+learnt in one simulator tested in the other.
 """
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import replace
+from typing import get_args
 
 from lolgps_torch.cli import add_plant_arguments, plant_config, read_offsets, run
 from lolgps_torch.cluster import import_ray
@@ -31,6 +34,7 @@ from lolgps_torch.evaluation.plot import plot_fig4
 from lolgps_torch.evaluation.square import SquareConfig
 from lolgps_torch.evaluation.table import format_table
 from lolgps_torch.lolgps.run import read_run
+from lolgps_torch.sim.simulator import Simulator
 
 
 def make_parser(defaults: AreaConfig) -> argparse.ArgumentParser:
@@ -84,6 +88,12 @@ def make_parser(defaults: AreaConfig) -> argparse.ArgumentParser:
         help="roll out on Ray actors instead of processes: alone, a local instance of --workers "
         "CPUs; with an address (e.g. auto), that cluster (needs pip install -e '.[ray]')",
     )
+    parser.add_argument(
+        "--sim",
+        choices=get_args(Simulator),
+        default=None,
+        help="the simulator the rollouts run in (default: the run's)",
+    )
     add_plant_arguments(parser)
     return parser
 
@@ -107,6 +117,7 @@ def main() -> None:
         square=square,
         ray=args.ray,
         plant=plant,
+        sim=args.sim,
     )
     folder = RunFolder(args.run)
     plot_fig4(evaluation, folder.figure_path)

@@ -66,7 +66,7 @@ def main() -> None:
         worst = max(worst, float(np.abs(fk - world.points()).max()))
     verdict = "OK" if worst < 1e-6 else "MISMATCH"
     print(
-        f"FK check      {args.checks} random poses, max |pytorch-kinematics - PyBullet| = {worst:.2e} m  {verdict}"
+        f"FK check      {args.checks} random poses, max |pytorch-kinematics - {task.config.sim}| = {worst:.2e} m  {verdict}"
     )
     task.close()
 

@@ -27,13 +27,14 @@ from lolgps_torch.evaluation.render import (
     record_clips,
     render_clips,
 )
-from lolgps_torch.evaluation.scene import BACKGROUND, BARE_ARM, Scene, camera_for
+from lolgps_torch.evaluation.scene import Scene, camera_for
 from lolgps_torch.lolgps.run import LoadedRun, load_run
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.ik import solve_ik
 from lolgps_torch.robot.peg import PegConfig
+from lolgps_torch.sim.pybullet_display import BACKGROUND, BARE_ARM
 from lolgps_torch.sim.world import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.types import ConditionSamples, LinearGaussian
@@ -206,7 +207,7 @@ def test_an_arm_without_shapes_is_drawn_as_capsules(tmp_path: Path) -> None:
     arm = load_arm(str(urdf), None, PegConfig())
     scene = Scene(arm, WorldConfig(), (0.6, 0.0, 0.2), "wide")
     try:
-        bodies = {part.body for part in scene.parts if part.parent is not None}
+        bodies = {part.body for part in scene.display.parts if part.parent is not None}
         assert len(bodies) >= arm.dof  # a capsule per moving link at least
         camera = scene.camera((0.0, 0.0), np.zeros(arm.dof))  # upright, the peg on top
         rgb, segmentation = scene.photograph(camera, 160, 120)

@@ -36,6 +36,7 @@ from lolgps_torch.evaluation.transfer import compute_scratch, rates_by_condition
 from lolgps_torch.evaluation.worker import Job, PolicyState, Position
 from lolgps_torch.lolgps.run import RunInfo, read_run
 from lolgps_torch.sim.plant import PlantConfig
+from lolgps_torch.sim.simulator import Simulator
 
 
 def stage_policies(folder: RunFolder, info: RunInfo) -> list[tuple[int, PolicyState]]:
@@ -231,6 +232,7 @@ def evaluate_run(
     square: tuple[SquareConfig, int] | None = None,
     ray: str | None = None,
     plant: PlantConfig | None = None,
+    sim: Simulator | None = None,
 ) -> dict[str, Any]:
     """Evaluate every stage's checkpoint of ``run_dir`` and write its ``eval.json``.
 
@@ -247,6 +249,7 @@ def evaluate_run(
     :param ray: run the rollouts on Ray instead of processes: ``"local"`` starts a local
         instance of ``workers`` CPUs, anything else is a cluster address (e.g. ``auto``).
     :param plant: the simulated arm to evaluate on (default: the run's own).
+    :param sim: the simulator to evaluate in (default: the run's own).
     :returns: the dict written to ``eval.json``.
     """
     if areas is not None and positions is not None:
@@ -264,8 +267,8 @@ def evaluate_run(
         else None
     )
     square = (replace(square[0], side=square[0].side * factor), square[1]) if square else None
-    if plant is not None:
-        info = replace(info, task=replace(info.task, plant=plant))
+    task = replace(info.task, plant=plant or info.task.plant, sim=sim or info.task.sim)
+    info = replace(info, task=task)
     policies = stage_policies(folder, info)
     if square is not None:
         groups = _square_group(*square, info)
@@ -281,6 +284,7 @@ def evaluate_run(
         "area_config": asdict(areas) if areas is not None else None,
         "success_threshold": info.task.world.success_threshold,
         "plant": asdict(info.task.plant),
+        "sim": info.task.sim,
         "training": {"conditions": [list(c) for c in info.conditions], "stages": info.stages},
         "groups": groups,
         "stages": stages,

@@ -120,6 +120,7 @@ def _setup(peg: PegTask, n_worlds: int, policies: Sequence[PolicyState]) -> Roll
         n_worlds,
         tuple(policies),
         peg.config.plant,
+        peg.config.sim,
     )
 
 

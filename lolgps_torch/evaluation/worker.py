@@ -27,7 +27,7 @@ from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
 from lolgps_torch.sim.rollout import Sampler
-from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.sim.simulator import Simulator, WorldConfig
 from lolgps_torch.state import StateLayout
 
 Position = tuple[float, float]
@@ -86,6 +86,7 @@ class RolloutSetup:
     :param n_worlds: worlds stepped in lockstep (the batch size).
     :param policies: the policies the jobs run.
     :param plant: the simulated arm (``TaskConfig.plant``).
+    :param simulator: the simulator that steps the worlds (``TaskConfig.sim``).
     """
 
     arm: ArmSpec
@@ -95,11 +96,18 @@ class RolloutSetup:
     n_worlds: int
     policies: tuple[PolicyState, ...]
     plant: PlantConfig = NOMINAL_PLANT
+    simulator: Simulator = "pybullet"
 
     def sampler(self) -> Sampler:
         """A new pool of ``n_worlds`` worlds in this process."""
         return Sampler(
-            self.arm, self.world, self.nominal_mouth, self.q0, self.n_worlds, plant=self.plant
+            self.arm,
+            self.world,
+            self.nominal_mouth,
+            self.q0,
+            self.n_worlds,
+            plant=self.plant,
+            simulator=self.simulator,
         )
 
 

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from lolgps_torch.robot.rigid_body import ArmDynamics, Frames
 from lolgps_torch.robot.spec import ArmSpec
-from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.sim.simulator import WorldConfig
 
 # btMultiBody's default linear and angular damping, which PyBullet does not change.
 BULLET_LINK_DAMPING = 0.04

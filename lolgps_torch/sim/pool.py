@@ -36,7 +36,7 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
-from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.sim.simulator import Simulator, WorldConfig
 
 Position = tuple[float, float]
 
@@ -44,18 +44,21 @@ Position = tuple[float, float]
 @dataclass(frozen=True)
 class WorldSetup:
     """What a worker needs to build a world identical to the main process's: the arm, the
-    world settings, the placement's nominal hole mouth (m) and start pose (rad), and the
-    plant."""
+    world settings, the placement's nominal hole mouth (m) and start pose (rad), the plant
+    and the simulator."""
 
     arm: ArmSpec
     config: WorldConfig
     nominal_mouth: tuple[float, ...]
     q0: tuple[float, ...]
     plant: PlantConfig = PlantConfig()
+    simulator: Simulator = "pybullet"
 
     def sampler(self) -> Sampler:
         """One world in this process."""
-        return Sampler(self.arm, self.config, self.nominal_mouth, self.q0, 1, plant=self.plant)
+        return Sampler(
+            self.arm, self.config, self.nominal_mouth, self.q0, 1, "cpu", self.plant, self.simulator
+        )
 
 
 def _failure(error: BaseException) -> BaseException:

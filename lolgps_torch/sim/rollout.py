@@ -17,7 +17,7 @@ from torch import Tensor
 
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
-from lolgps_torch.sim.world import PegWorld, WorldConfig
+from lolgps_torch.sim.simulator import Simulator, World, WorldConfig, build_world
 from lolgps_torch.types import LinearGaussian
 
 
@@ -58,8 +58,8 @@ class RowActor(NamedTuple):
 
 
 class Sampler:
-    """A pool of worlds (of the plant ``plant``) that run up to ``len(worlds)`` rollouts at a
-    time."""
+    """A pool of worlds (of the plant ``plant``, stepped by ``simulator``) that run up to
+    ``len(worlds)`` rollouts at a time."""
 
     def __init__(
         self,
@@ -70,11 +70,18 @@ class Sampler:
         n_worlds: int,
         device: torch.device | str = "cpu",
         plant: PlantConfig = NOMINAL_PLANT,
+        simulator: Simulator = "pybullet",
     ) -> None:
         self.config = config
         self.q0 = np.asarray(q0, dtype=np.float64)
         self.device = torch.device(device)
-        self.worlds = [PegWorld(arm, config, nominal_mouth, plant=plant) for _ in range(n_worlds)]
+        self.worlds: list[World] = []
+        try:
+            for _ in range(n_worlds):
+                self.worlds.append(build_world(simulator, arm, config, nominal_mouth, plant))
+        except BaseException:
+            self.close()
+            raise
 
     def rollout(
         self,

@@ -50,7 +50,7 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -67,6 +67,7 @@ from lolgps_torch.lolgps.local import (
     planned_controller,
 )
 from lolgps_torch.sim.pybullet_quiet import pb
+from lolgps_torch.sim.world import PegWorld
 from lolgps_torch.task import PegTask, TaskConfig
 
 
@@ -81,7 +82,7 @@ def median_time(fn: Callable[[], object], repeats: int) -> float:
 
 def bench_physics(task: PegTask, repeats: int) -> dict[str, float]:
     """Substeps per second: bare stepping vs the full rollout pipeline, same worlds."""
-    worlds = task.sampler.worlds
+    worlds = cast(list[PegWorld], task.sampler.worlds)  # the default simulator's
     T, substeps = task.T, task.config.world.substeps
     q0 = task.q0.numpy()
     w0 = worlds[0]

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -71,7 +72,7 @@ def rollout(
     """Final distances ``[N]`` of noiseless rollouts, rollout i acted by ``act[i](t, x)`` (a
     ``[dX] -> [dU]`` callable) at ``offsets[i]``, with ``bias[i, t]`` (``[N, T, dU]``) added to
     its actions and the peg moved by ``kick[i]`` (m, ``[N, 2]``) at :data:`KICK_STEP`."""
-    worlds, T = task.sampler.worlds, task.T
+    worlds, T = cast(list[PegWorld], task.sampler.worlds), task.T  # the default simulator's
     finals = []
     for start in range(0, len(offsets), len(worlds)):
         chunk = range(start, min(start + len(worlds), len(offsets)))

@@ -21,7 +21,7 @@ from lolgps_torch.data.run_folder import RunFolder, as_stored, flatten
 from lolgps_torch.evaluation.evaluate import read_evaluation
 from lolgps_torch.lolgps import StreamConfig, method_config
 from lolgps_torch.sim.plant import PlantConfig
-from lolgps_torch.sim.world import WorldConfig
+from lolgps_torch.sim.simulator import WorldConfig
 
 PER_RUN = {"seed", "policy.seed"}  # settings every seed changes
 

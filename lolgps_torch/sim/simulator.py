@@ -1,0 +1,401 @@
+"""The simulator seam: what the task, the samplers, evaluation and rendering ask of a simulated
+world, whichever engine steps it (``TaskConfig.sim``: ``pybullet``, the default, or
+``mujoco``).
+
+- :class:`WorldConfig`: the world's settings, the same for every engine.
+- :class:`World`: one world with the arm, the table and the funnel hole. Its public methods are
+  the interface (``set_hole``, ``reset``, ``step``, ``observe``, ``points``, ``tip_distance``,
+  ``effective_inertia``, ``joint_damping``, ``close``); it holds everything that does not
+  depend on the engine (the state vector, the command queue of a delayed plant, the sensor
+  noise, the effort limits), and an engine supplies a few primitives: move the hole, set the
+  joints, read them, the point frame's pose, the gravity compensation and one physics step.
+- :class:`Display`: a world posed from recorded joint angles and photographed, for videos.
+- :func:`build_world`, :func:`build_display` and :func:`engine_errors` pick the engine by
+  name; each engine's module is imported only when it is asked for.
+
+The geometry both engines build is described once here: :func:`hole_boxes` (the table and
+the tilted-plate funnel) and :func:`damping_inertias` (where rotor-like inertia is added
+because joint damping would be unstable).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal, NamedTuple, Protocol
+
+import numpy as np
+from torch import Tensor
+
+from lolgps_torch.errors import LolgpsError, NumericalError
+from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.plant import (
+    NOMINAL_PLANT,
+    VELOCITY_NOISE_RATIO,
+    PlantConfig,
+    physics_steps,
+)
+from lolgps_torch.state import StateLayout
+
+Simulator = Literal["pybullet", "mujoco"]
+MUJOCO_INSTALL = "pip install -e '.[mujoco]'"
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """Simulation and hole geometry (SI units).
+
+    :param dt: control step. :param substeps: physics steps per control step.
+    :param T: steps per episode. :param gravity: gravitational acceleration (m/s^2).
+    :param depth: hole depth. :param clearance_mouth: clearance per side at the mouth.
+    :param clearance_bottom: clearance per side at the floor.
+    :param plate_thickness: guide plate thickness. :param table_half_size: table half extent.
+    :param friction: lateral friction of table and hole.
+    :param success_threshold: tip-to-target distance that counts as inserted.
+    :param damping_margin: joints whose effective inertia is below ``damping_margin * b * dt``
+        (b the URDF joint damping, dt the physics step) get rotor-like inertia added, since
+        PyBullet's explicit joint damping is unstable there (pybullet_data's xArm, damping 1,
+        drifted 7 rad in 5 s with zero action before this).
+    :param max_joint_speed: joint speed (rad/s) beyond which a state counts as a simulator
+        blow-up (PyBullet itself caps joint speeds at 100 rad/s by default).
+    :param known_delay: the command delay (s) the learner allows for, whole physics steps: the
+        state carries the actions of the last ceil(d / dt) control steps and the arm's model
+        acts on each command d late (set it to the arm's latency)
+    """
+
+    dt: float = 0.05
+    substeps: int = 5
+    T: int = 100
+    gravity: float = 9.81
+    depth: float = 0.10
+    clearance_mouth: float = 0.004
+    clearance_bottom: float = 0.001
+    plate_thickness: float = 0.02
+    table_half_size: float = 0.6
+    friction: float = 0.2
+    success_threshold: float = 0.06
+    damping_margin: float = 1.0
+    max_joint_speed: float = 100.0
+    known_delay: float = 0.0
+
+    def __post_init__(self) -> None:
+        positive = {
+            "dt": self.dt,
+            "gravity": self.gravity,
+            "depth": self.depth,
+            "clearance_mouth": self.clearance_mouth,
+            "clearance_bottom": self.clearance_bottom,
+            "plate_thickness": self.plate_thickness,
+            "table_half_size": self.table_half_size,
+            "success_threshold": self.success_threshold,
+            "max_joint_speed": self.max_joint_speed,
+        }
+        for name, value in positive.items():
+            if not (math.isfinite(value) and value > 0):
+                raise LolgpsError(f"world {name} must be positive and finite, got {value}")
+        for name, value in (("friction", self.friction), ("damping_margin", self.damping_margin)):
+            if not (math.isfinite(value) and value >= 0):
+                raise LolgpsError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+        if self.substeps < 1 or self.T < 1:
+            raise LolgpsError(
+                f"world substeps and T must be at least 1, got {self.substeps}, {self.T}"
+            )
+        if self.clearance_bottom > self.clearance_mouth:
+            raise LolgpsError(
+                f"the hole's clearance at the floor ({self.clearance_bottom} m) exceeds that "
+                f"at the mouth ({self.clearance_mouth} m)"
+            )
+        if not (math.isfinite(self.known_delay) and self.known_delay >= 0):
+            raise LolgpsError(f"--known-delay must be >= 0 and finite, got {self.known_delay}")
+        physics_steps(self.known_delay, self.dt / self.substeps, "--known-delay")
+
+    @property
+    def delay_steps(self) -> int:
+        """The known delay in physics steps."""
+        return physics_steps(self.known_delay, self.dt / self.substeps, "--known-delay")
+
+    @property
+    def history(self) -> int:
+        """Actions kept in the state: ``ceil(d / dt)`` for the known delay d."""
+        return -(-self.delay_steps // self.substeps)
+
+    def layout(self, dof: int) -> StateLayout:
+        """The state vector's layout for an arm of ``dof`` actuated joints."""
+        return StateLayout(dof, self.history)
+
+
+class Box(NamedTuple):
+    """One box of the hole, in the hole's frame (the mouth's centre): half extents (m), and a
+    pose ``Rz(yaw) (Ry(tilt) x + centre)``: turned by ``tilt`` about y, moved to ``centre``,
+    then the whole turned by ``yaw`` about the hole's vertical axis.  ``yaw`` None: the box
+    is not turned at all (the floor, which PyBullet places without composing transforms,
+    as those round to single precision)."""
+
+    half_extents: list[float]
+    centre: list[float]
+    yaw: float | None
+    tilt: float
+
+
+def hole_boxes(peg_radius: float, config: WorldConfig) -> list[Box]:
+    """The table slab with a square opening and the funnel under it, as boxes: four guide
+    plates tilted so the clearance per side narrows from ``clearance_mouth`` at the table
+    surface to ``clearance_bottom`` at the floor, ``depth`` below; a pinwheel of four slabs
+    around the opening; the floor."""
+    a_top = peg_radius + config.clearance_mouth
+    a_bot = peg_radius + config.clearance_bottom
+    h, D, W = config.plate_thickness / 2, config.depth, config.table_half_size
+    norm = math.hypot(D, a_bot - a_top)
+    nx, nz = D / norm, (a_bot - a_top) / norm  # outward normal of the +x plate's face
+    face_mid = np.array([(a_top + a_bot) / 2, 0.0, -D / 2])
+    centre = (face_mid + h * np.array([nx, 0.0, nz])).tolist()
+    tilt = math.atan2(-nz, nx)
+    quarter = [k * math.pi / 2 for k in range(4)]
+    plates = [Box([h, a_top + 2 * h, norm / 2], centre, yaw, tilt) for yaw in quarter]
+    outer = a_top + 2 * h  # the slab leaves a square opening of this half-width
+    zc, zh = -(D + 2 * h) / 2, (D + 2 * h) / 2
+    slab = [(W - outer) / 2, (W + outer) / 2, zh]
+    slabs = [Box(slab, [(outer + W) / 2, (W - outer) / 2, zc], yaw, 0.0) for yaw in quarter]
+    return [*plates, *slabs, Box([outer, outer, h], [0.0, 0.0, -D - h], None, 0.0)]
+
+
+def damping_inertias(
+    mass_matrix: np.ndarray, index: Sequence[int], damping: Sequence[float], config: WorldConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per joint ``index[j]`` of ``mass_matrix`` (at q = 0; joint damping ``damping[j]``): its
+    effective inertia ``m = 1 / (M^-1)_jj`` and the least inertia ``margin b h`` at which
+    PyBullet's explicit joint damping is stable (h the physics step).  A world adds the
+    difference, where m is below it, to the joint's child link as rotor-like inertia."""
+    dt = config.dt / config.substeps
+    m_eff = 1.0 / np.diag(np.linalg.inv(mass_matrix))[list(index)]
+    need = np.array([config.damping_margin * b * dt for b in damping])
+    return m_eff, need
+
+
+class World(ABC):
+    """One world with the arm, the table and the hole, stepped by an engine (module
+    docstring).  Not picklable: build it in the process that uses it.
+
+    Dynamics: each control step of ``dt`` holds the command for ``substeps`` physics steps.
+    The joint torque sent at every physics step is ``clip(u + g(q), -effort, effort)``, where
+    ``g(q)`` is the gravity-compensation torque (inverse dynamics at zero velocity and
+    acceleration) evaluated at the start of the control step, as a torque-controlled arm's own
+    gravity compensation would.  Only the peg collides with the table and the hole.
+
+    :param arm: the arm. :param config: simulation and hole geometry.
+    :param nominal_mouth: the hole's mouth at offset zero (world, m).
+    :param plant: how the simulated arm departs from its URDF.
+    """
+
+    def __init__(
+        self,
+        arm: ArmSpec,
+        config: WorldConfig,
+        nominal_mouth: tuple[float, ...],
+        plant: PlantConfig = NOMINAL_PLANT,
+    ) -> None:
+        self.arm, self.config, self.plant = arm, config, plant
+        self.layout = config.layout(arm.dof)
+        self.nominal_mouth = np.asarray(nominal_mouth, dtype=np.float64)
+        self.delay = plant.delay_steps(config.dt / config.substeps)
+        self.offsets = np.asarray(arm.point_offsets, dtype=np.float64)  # [2, 3]
+        self.effort = np.asarray(arm.effort, dtype=np.float64)
+        self.targets = np.zeros((2, 3))
+        self._prev_points = np.zeros(6)
+        self._points = np.zeros(6)
+        self._queue = np.zeros((self.delay, arm.dof))  # commands issued, not yet acting
+        self._issued = np.zeros((config.history, arm.dof))  # the last commands, newest first
+        self._noise: np.random.Generator | None = None
+
+    # the engine's primitives
+
+    @abstractmethod
+    def _move_hole(self, mouth: np.ndarray) -> None:
+        """Put the hole's frame (the mouth's centre) at ``mouth`` (world, m)."""
+
+    @abstractmethod
+    def _set_joints(self, q: np.ndarray) -> None:
+        """Put the actuated joints at ``q``, at rest."""
+
+    @abstractmethod
+    def _joint_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """The actuated joints' angles and velocities now, ``([dof], [dof])``."""
+
+    @abstractmethod
+    def _point_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The point frame's world position ``[3]`` and rotation ``[3, 3]`` now."""
+
+    @abstractmethod
+    def _physics_step(self, tau: np.ndarray) -> None:
+        """One physics step of ``dt / substeps`` with the joint torques ``tau: [dof]``."""
+
+    @abstractmethod
+    def gravity_compensation(self) -> np.ndarray:
+        """``g(q) [dof]`` at the joint angles the last observation read, as the plant
+        computes it."""
+
+    @abstractmethod
+    def effective_inertia(self, q: Sequence[float]) -> Tensor:
+        """``1 / diag(M(q)^{-1})`` per actuated joint (kg m^2, float64): the inertia each joint
+        feels at ``q``, in the URDF's arm (not the plant's)."""
+
+    @abstractmethod
+    def joint_damping(self) -> Tensor:
+        """The joint damping b (N m s/rad, float64) of the URDF, per actuated joint."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the engine's resources."""
+
+    # the interface, the same for every engine
+
+    def set_hole(self, offset: tuple[float, float]) -> None:
+        """Move the hole to ``nominal + (dx, dy)``; targets: tip at the floor centre, top above."""
+        mouth = self.nominal_mouth + np.array([offset[0], offset[1], 0.0])
+        self._move_hole(mouth)
+        tip = mouth - np.array([0.0, 0.0, self.config.depth])
+        self.targets = np.stack([tip, tip - self.offsets[1]])  # top offset points down the axis
+
+    def points(self) -> np.ndarray:
+        """World positions of the tip and top points, ``[2, 3]``."""
+        position, R = self._point_pose()
+        return position + self.offsets @ R.T
+
+    def reset(self, q0: np.ndarray, key: tuple[int, ...] = (0,)) -> np.ndarray:
+        """Put the arm at rest at ``q0``, with no command pending, and return the state; the
+        rollout's sensor noise is drawn from ``key`` (:meth:`PlantConfig.noise`)."""
+        self._set_joints(np.asarray(q0, dtype=np.float64))
+        self._queue = np.zeros_like(self._queue)
+        self._issued = np.zeros_like(self._issued)
+        self._noise = self.plant.noise(key)
+        self._prev_points = (self.points() - self.targets).reshape(6)
+        return self.observe()  # zero point velocity at rest
+
+    def observe(self) -> np.ndarray:
+        """The state vector ``[dX]`` (see :class:`StateLayout`)."""
+        q, qd = self._joint_state()
+        if not (np.isfinite(q).all() and np.abs(qd).max() <= self.config.max_joint_speed):
+            raise NumericalError(
+                f"the simulation blew up: joint speed {np.abs(qd).max():.3g} rad/s "
+                f"(bound {self.config.max_joint_speed:g})"
+            )
+        pts = (self.points() - self.targets).reshape(6)
+        vel = (pts - self._prev_points) / self.config.dt
+        self._points = pts
+        if self._noise is not None:
+            scale = self.plant.obs_noise
+            q = q + self._noise.normal(0.0, scale, q.shape)
+            qd = qd + self._noise.normal(0.0, VELOCITY_NOISE_RATIO * scale, qd.shape)
+        return np.concatenate([q, qd, pts, vel, self._issued.reshape(-1)])
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """Issue torque ``u`` (on top of gravity compensation) for one control step, starting
+        from the state the last :meth:`reset`, :meth:`observe` or :meth:`step` returned; with a
+        delay of d physics steps, the commands issued d steps earlier act instead."""
+        substeps = self.config.substeps
+        if not np.all(np.isfinite(u)):
+            raise NumericalError("non-finite action: the controller produced NaN or inf torques")
+        g = self.gravity_compensation()
+        held = np.concatenate([self._queue, np.broadcast_to(u, (substeps, len(u)))])
+        self._queue = held[substeps:]
+        # the commands as they act (within the effort limits): past commands beyond them
+        # would grow without bound under a controller that feeds them back
+        acting = np.clip(u + g, -self.effort, self.effort) - g
+        self._issued = np.concatenate([acting[None], self._issued])[: len(self._issued)]
+        self._prev_points = self._points
+        for s in range(substeps):
+            self._physics_step(np.clip(held[s] + g, -self.effort, self.effort))
+        return self.observe()
+
+    def tip_distance(self) -> float:
+        """Distance (m) from the peg tip to the hole-floor target."""
+        return float(np.linalg.norm(self.points()[0] - self.targets[0]))
+
+
+class Camera(NamedTuple):
+    """A pinhole camera looking at ``target`` from ``eye`` (world, m), ``fov`` degrees."""
+
+    eye: np.ndarray
+    target: np.ndarray
+    fov: float
+
+
+class Display(Protocol):
+    """A world for pictures: the arm and a coloured copy of its hole, posed (no physics runs)
+    and photographed."""
+
+    @property
+    def world(self) -> World:
+        """The posed world (its ``nominal_mouth`` and ``points``)."""
+
+    def show(self, offset: tuple[float, float], q: np.ndarray) -> None:
+        """Put the hole at ``offset`` and the arm at joint angles ``q``, at rest."""
+
+    def photograph(self, camera: Camera, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """The current pose through ``camera``: RGB ``[H, W, 3]`` uint8, and a segmentation
+        ``[H, W]`` (int, negative for the background) that :meth:`peg_mask` reads."""
+
+    def peg_mask(self, segmentation: np.ndarray) -> np.ndarray:
+        """Where a segmentation of :meth:`photograph` shows the peg, ``[H, W]`` bool."""
+
+    def close(self) -> None:
+        """Release the display's resources."""
+
+
+def require(simulator: Simulator) -> None:
+    """Raise :class:`LolgpsError` if ``simulator``'s engine is not installed (PyBullet always
+    is; MuJoCo is the ``mujoco`` extra)."""
+    if simulator == "mujoco" and importlib.util.find_spec("mujoco") is None:
+        raise LolgpsError(f"--sim mujoco needs MuJoCo, which is not installed: {MUJOCO_INSTALL}")
+
+
+def check_plant(simulator: Simulator, plant: PlantConfig) -> None:
+    """Raise :class:`LolgpsError` if ``simulator`` cannot simulate ``plant``: MuJoCo's world
+    simulates the arm as its URDF describes it, the plant variations are PyBullet's."""
+    if simulator == "mujoco" and plant != NOMINAL_PLANT:
+        raise LolgpsError(
+            "--sim mujoco simulates the arm as its URDF describes it: the plant flags "
+            "(--plant-inertia-scale, --payload, --gravity-compensation, --joint-friction, "
+            "--obs-noise, --action-delay) need --sim pybullet"
+        )
+
+
+def build_world(
+    simulator: Simulator,
+    arm: ArmSpec,
+    config: WorldConfig,
+    nominal_mouth: tuple[float, ...],
+    plant: PlantConfig = NOMINAL_PLANT,
+) -> World:
+    """A world of ``simulator``'s engine (:func:`require` checks that it is installed)."""
+    require(simulator)
+    if simulator == "mujoco":
+        from lolgps_torch.sim.mujoco_world import MujocoWorld
+
+        return MujocoWorld(arm, config, nominal_mouth, plant)
+    from lolgps_torch.sim.world import PegWorld
+
+    return PegWorld(arm, config, nominal_mouth, plant=plant)
+
+
+def build_display(
+    arm: ArmSpec, config: WorldConfig, nominal_mouth: tuple[float, ...], cut: np.ndarray | None
+) -> Display:
+    """The display of the arm (any simulator's run: no physics runs in it, so PyBullet's CPU
+    renderer draws every run); ``cut``: leave out the hole's boxes whose centre lies on this
+    horizontal direction's side of the hole's axis (None: draw all)."""
+    from lolgps_torch.sim.pybullet_display import PyBulletDisplay
+
+    return PyBulletDisplay(arm, config, nominal_mouth, cut)
+
+
+def engine_errors(simulator: Simulator) -> tuple[type[Exception], ...]:
+    """The exceptions ``simulator``'s engine raises for a body it cannot build or step."""
+    if simulator == "mujoco":
+        return (ValueError,)
+    from lolgps_torch.sim.pybullet_quiet import pb
+
+    return (pb.error,)

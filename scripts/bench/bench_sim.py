@@ -1,0 +1,74 @@
+"""Benchmark of the simulators: the seconds one rollout takes in MuJoCo as a ratio to PyBullet,
+the reference, both measured in this run.
+
+    python scripts/bench/bench_sim.py [--urdf robots/kuka_peg.urdf] [--samples 5] [--repeats 5]
+
+Per simulator, one process's task at the nominal hole samples batches of ``samples`` rollouts
+of the first local controller (the hold of the start pose planned on the arm's model, which
+inserts the peg, with its smoothed exploration noise, seed 0) as the local learner's first
+iteration does: stepping with contact, gravity compensation, state extraction and the cost.  The two simulators' batches alternate,
+so drifting load hits both alike; medians over ``repeats``, and the ratio
+``mujoco / pybullet`` per rollout.  On a shared machine compare the ratio, not the seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from typing import get_args
+
+from lolgps_torch.cli import run
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, planned_controller
+from lolgps_torch.sim.simulator import Simulator
+from lolgps_torch.task import PegTask, TaskConfig
+
+
+def bench_sim(urdf: str, samples: int = 5, repeats: int = 5) -> dict[str, float]:
+    """Median seconds per rollout in each simulator (``<sim>_s``), its success rate over the
+    timed batches (``<sim>_success``), and ``ratio = mujoco_s / pybullet_s``."""
+    names = get_args(Simulator)
+    tasks = {name: PegTask(TaskConfig(urdf=urdf, sim=name), n_worlds=1) for name in names}
+    try:
+        config = LocalConfig(samples=samples)
+        learners = {
+            name: LocalLearner(task, (0.0, 0.0), config, seed=0) for name, task in tasks.items()
+        }
+        first = {
+            name: planned_controller(tasks[name], learner.targets, learner.p_cur, config)[0]
+            for name, learner in learners.items()
+        }
+        times: dict[str, list[float]] = {name: [] for name in names}
+        successes: dict[str, list[float]] = {name: [] for name in names}
+        for _ in range(repeats):
+            for name, learner in learners.items():
+                t0 = time.perf_counter()
+                batch = learner.sample(first[name])
+                times[name].append((time.perf_counter() - t0) / samples)
+                successes[name].append(float(batch.success.double().mean()))
+    finally:
+        for task in tasks.values():
+            task.close()
+    result = {f"{name}_s": statistics.median(times[name]) for name in names}
+    result |= {f"{name}_success": statistics.mean(successes[name]) for name in names}
+    result["ratio"] = result["mujoco_s"] / result["pybullet_s"]
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--urdf", default="robots/kuka_peg.urdf", help="the arm's URDF")
+    parser.add_argument("--samples", type=int, default=5, help="rollouts a batch (default 5)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed batches (default 5)")
+    args = parser.parse_args()
+    if args.samples < 1 or args.repeats < 1:
+        raise LolgpsError("--samples and --repeats must be at least 1")
+    for name, value in bench_sim(args.urdf, args.samples, args.repeats).items():
+        print(f"{name:>16}: {value:.4f}")
+
+
+if __name__ == "__main__":
+    run(main)
