@@ -1,0 +1,108 @@
+"""Evaluate finished runs again under other guard settings, to see what the guard costs and saves.
+
+    python scripts/research/guard_variants.py SWEEP_OR_RUN ... --out DIR [--speed V]
+                                              [--torque T | --no-torque] [--off] [--workers N]
+
+Each evaluated run folder (a sweep folder stands for every evaluated run in it) is copied to
+``DIR/<run name>`` without its replay, its stage checkpoints' guards re-set, and evaluated on
+the default test areas (``scripts/evaluate.py``). The guard's bounds are margins times what
+D_g held (:mod:`lolgps_torch.policy.guard`); the run's config.json gives the margins it was
+trained with, so the new ones are set as ratios: ``--speed V`` trips the brake at V times
+D_g's largest joint speeds, ``--torque T`` bounds torques at T times the largest teacher
+torque, ``--no-torque`` leaves them unbounded, ``--off`` turns the whole guard off. The
+brake gain stays the run's. The policies themselves are the runs' own, so only acting
+changes; compare with ``scripts/research/seed_table.py RUNS DIR --label trained variant``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+from pathlib import Path
+
+from lolgps_torch.cli import run
+from lolgps_torch.data.checkpoint import load_policy, save_policy
+from lolgps_torch.errors import LolgpsError
+from lolgps_torch.evaluation.evaluate import evaluate_run
+from lolgps_torch.policy.guard import Guard
+
+
+def parse_args() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("folders", nargs="+", help="evaluated run folders or sweep folders")
+    parser.add_argument("--out", required=True, help="folder of the re-guarded copies")
+    parser.add_argument("--speed", type=float, default=None, help="brake trip, in D_g speeds")
+    torque = parser.add_mutually_exclusive_group()
+    torque.add_argument("--torque", type=float, default=None, help="bound, in teacher torques")
+    torque.add_argument("--no-torque", action="store_true", help="torques unbounded")
+    parser.add_argument("--off", action="store_true", help="no guard at all")
+    parser.add_argument("--workers", type=int, default=2, help="evaluation processes")
+    args = parser.parse_args()
+    for name in ("speed", "torque"):
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise LolgpsError(f"--{name} must be a positive number, got {value}")
+    if args.workers < 1:
+        raise LolgpsError(f"--workers must be at least 1, got {args.workers}")
+    return args
+
+
+def evaluated_runs(folder: Path) -> list[Path]:
+    """``folder`` if it is an evaluated run, else its evaluated run subfolders."""
+    if (folder / "eval.json").is_file():
+        return [folder]
+    found = sorted(p.parent for p in folder.glob("*/eval.json"))
+    if not found:
+        raise LolgpsError(f"{folder}: no evaluated run (eval.json) in it")
+    return found
+
+
+def reguarded(guard: Guard, trained: dict[str, float], args: argparse.Namespace) -> Guard:
+    """``guard`` with the margins ``args`` asks for, its bounds rescaled from the ``trained``
+    margins (``guard_speed``, ``guard_torque`` of the run's policy config)."""
+    if args.off:
+        return Guard.off(guard.torque.shape[0], guard.torque.device)
+    speed = guard.speed * (args.speed / trained["guard_speed"]) if args.speed else guard.speed
+    if args.no_torque:
+        torque = guard.torque * math.inf
+    elif args.torque:
+        torque = guard.torque * (args.torque / trained["guard_torque"])
+    else:
+        torque = guard.torque
+    return Guard(torque, speed, guard.brake)
+
+
+def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None:
+    """The run ``source`` copied to ``target`` (no replay, no evaluation), guards re-set."""
+    trained = json.loads((source / "config.json").read_text())["stream"]["policy"]
+    if not trained.get("guard", False):
+        raise LolgpsError(f"{source}: its policies were trained without a guard")
+    shutil.rmtree(target, ignore_errors=True)
+    shutil.copytree(
+        source, target, ignore=shutil.ignore_patterns("replay.h5", "eval.json", "*.png")
+    )
+    for checkpoint in sorted((target / "checkpoints").iterdir()):
+        policy = load_policy(checkpoint)
+        policy.set_guard(reguarded(policy.guard, trained, args))
+        save_policy(checkpoint, policy)
+
+
+def main() -> None:
+    args = parse_args()
+    sources = [r for folder in args.folders for r in evaluated_runs(Path(folder))]
+    out = Path(args.out)
+    for source in sources:
+        target = out / source.name
+        copy_reguarded(source, target, args)
+        evaluation = evaluate_run(target, args.workers)  # writes target/eval.json
+        print(
+            f"{target}: average final success {evaluation['metrics']['average_final_success']:.3f}"
+        )
+
+
+if __name__ == "__main__":
+    run(main)
