@@ -39,6 +39,15 @@ def test_the_brake_inverts_the_fitted_response() -> None:
     assert torch.allclose(qd + (qd @ guard.brake.T) @ B.T, 0.5 * qd)
 
 
+def test_without_a_torque_margin_torques_are_unbounded() -> None:
+    x, u, _ = _known_system()
+    teacher = u.clone()
+    teacher[:, :, 1] = 0.0  # a joint its teachers never pushed stays unbounded too (no 0 * inf)
+    guard = fit_guard(x, u, teacher, LAYOUT.qd, None, 3.0, 0.5)
+    assert torch.isinf(guard.torque).all() and (guard.torque > 0).all()
+    assert torch.allclose(guard.speed, 3.0 * x[..., LAYOUT.qd].abs().amax((0, 1)))
+
+
 def test_the_guard_bounds_torques_and_brakes_once_tripped() -> None:
     guard = Guard(
         torch.tensor([1.0, 2.0], dtype=F64),

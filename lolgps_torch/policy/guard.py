@@ -8,6 +8,9 @@ keeps the policy inside what its teachers did, with bounds fitted to every condi
     once |q-dot_j| > v_j for some joint (v_j = speed_margin max |q-dot_j| over D_g), and for
     the rest of the rollout:  u_t = clip(-beta B^-1 q-dot_t, -tau, tau)
 
+(tau_j infinite unless a torque margin is given: the bound cost reaches to far holes and kept
+the brake from stopping a flung arm).
+
 with ``B`` the arm's response to a torque over one control step fitted to D_g's transitions by
 least squares, ``q-dot_{t+1} - q-dot_t ~ B u_t + c``: the brake takes ``beta`` of the joint
 speeds away per control step (the arm's inertia, coupling included, from the data, with no
@@ -16,6 +19,7 @@ model), so the arm stops where it left the speeds its teachers used.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -44,13 +48,13 @@ def fit_guard(
     u: Tensor,
     mean_cur: Tensor,
     qd: slice,
-    torque_margin: float,
+    torque_margin: float | None,
     speed_margin: float,
     beta: float,
 ) -> Guard:
     """The guard of rollouts with states ``x: [M, T+1, dX]`` (``x_T`` the state after the last
     action), actions ``u: [M, T, dU]`` and teacher means ``mean_cur: [M, T, dU]``; ``qd`` is
-    the state's joint-speed slice (M >= 1)."""
+    the state's joint-speed slice (M >= 1); ``torque_margin`` None leaves torques unbounded."""
     if x.shape[0] == 0:
         raise LolgpsError("the policy's guard needs at least one rollout")
     speeds = x[..., qd]  # [M, T+1, n]
@@ -61,7 +65,10 @@ def fit_guard(
     # process (LAPACK's least-squares and SVD drivers are not)
     solution = torch.linalg.solve(design.T @ design, design.T @ change)  # [dU + 1, n]
     B = solution[:-1].T  # [n, dU]
-    torque = torque_margin * mean_cur.abs().flatten(0, 1).amax(0)
+    largest = mean_cur.abs().flatten(0, 1).amax(0)
+    torque = (
+        torch.full_like(largest, math.inf) if torque_margin is None else torque_margin * largest
+    )
     speed = speed_margin * speeds.abs().flatten(0, 1).amax(0)
     return Guard(torque, speed, -beta * torch.linalg.inv(B))
 

@@ -70,6 +70,8 @@ def reguarded(guard: Guard, trained: dict[str, float], args: argparse.Namespace)
     if args.no_torque:
         torque = guard.torque * math.inf
     elif args.torque:
+        if trained["guard_torque"] is None:
+            raise LolgpsError("--torque: the runs were trained without a torque bound")
         torque = guard.torque * (args.torque / trained["guard_torque"])
     else:
         torque = guard.torque
