@@ -64,7 +64,6 @@ STREAM_FLAGS = ConfigFlags(
         "guard-torque": ("policy.guard_torque",),
         "guard-speed": ("policy.guard_speed",),
         "guard-brake": ("policy.guard_brake",),
-        "guard-retreat": ("policy.guard_retreat",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),
         "dynamics-prior": ("local.dynamics.prior",),

@@ -169,8 +169,8 @@ class Distiller:
         cfg = self.config
         with intra_op_threads(cfg.num_threads):  # as the S-step: the same bits in any process
             guard = fit_guard(
-                x, u, mean_cur, self.task.layout, cfg.guard_torque, cfg.guard_speed,
-                cfg.guard_brake, cfg.guard_retreat,
+                x, u, mean_cur, self.task.layout.qd, cfg.guard_torque, cfg.guard_speed,
+                cfg.guard_brake,
             )  # fmt: skip
         policy.set_guard(guard)
 

@@ -5,10 +5,8 @@ times the largest torque its teachers ever gave, flinging the arm a metre or mor
 keeps the policy inside what its teachers did, with bounds fitted to every condition's D_g:
 
     u_t = clip(mu_theta(x_t) (+ noise), -tau, tau)      tau_j = torque_margin max |mu_cur,j|
-    once |q-dot_j| > v_j for some joint (v_j = speed_margin max |q-dot_j| over D_g), or the tip
-    has retreated from its target, d_t - min_{s<=t} d_s > r (d_t = |p_tip - p*_tip|,
-    r = retreat_margin + the largest such retreat over D_g), and for the rest of the rollout:
-                              u_t = clip(-beta B^-1 q-dot_t, -tau, tau)
+    once |q-dot_j| > v_j for some joint (v_j = speed_margin max |q-dot_j| over D_g), and for
+    the rest of the rollout:  u_t = clip(-beta B^-1 q-dot_t, -tau, tau)
 
 (tau_j infinite unless a torque margin is given: the bound cost reaches to far holes and kept
 the brake from stopping a flung arm).
@@ -28,42 +26,35 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.state import StateLayout
 
 
 class Guard(NamedTuple):
-    """Torque bounds ``tau [dU]``, the speeds ``v [dU]`` that trip the brake, the brake's
-    gain ``-beta B^-1``, ``[dU, dU]``, and the retreat ``r`` (m, a 0-dim tensor) that trips it
-    too (module docstring)."""
+    """Torque bounds ``tau [dU]``, the speeds ``v [dU]`` that trip the brake and the brake's
+    gain ``-beta B^-1``, ``[dU, dU]`` (module docstring)."""
 
     torque: Tensor
     speed: Tensor
     brake: Tensor
-    retreat: Tensor
 
     @classmethod
     def off(cls, dU: int, device: torch.device | str = "cpu") -> Guard:
-        """A guard that never acts: unbounded torques, speeds and retreat."""
+        """A guard that never acts: unbounded torques and speeds."""
         inf = torch.full((dU,), float("inf"), dtype=torch.float64, device=device)
-        brake = torch.zeros(dU, dU, dtype=torch.float64, device=device)
-        return cls(inf, inf.clone(), brake, inf.new_tensor(float("inf")))
+        return cls(inf, inf.clone(), torch.zeros(dU, dU, dtype=torch.float64, device=device))
 
 
 def fit_guard(
     x: Tensor,
     u: Tensor,
     mean_cur: Tensor,
-    layout: StateLayout,
+    qd: slice,
     torque_margin: float | None,
     speed_margin: float,
     beta: float,
-    retreat_margin: float | None,
 ) -> Guard:
     """The guard of rollouts with states ``x: [M, T+1, dX]`` (``x_T`` the state after the last
-    action, laid out as ``layout``), actions ``u: [M, T, dU]`` and teacher means
-    ``mean_cur: [M, T, dU]`` (M >= 1); ``torque_margin`` None leaves torques unbounded,
-    ``retreat_margin`` None the retreat."""
-    qd = layout.qd
+    action), actions ``u: [M, T, dU]`` and teacher means ``mean_cur: [M, T, dU]``; ``qd`` is
+    the state's joint-speed slice (M >= 1); ``torque_margin`` None leaves torques unbounded."""
     if x.shape[0] == 0:
         raise LolgpsError("the policy's guard needs at least one rollout")
     speeds = x[..., qd]  # [M, T+1, n]
@@ -79,23 +70,13 @@ def fit_guard(
         torch.full_like(largest, math.inf) if torque_margin is None else torque_margin * largest
     )
     speed = speed_margin * speeds.abs().flatten(0, 1).amax(0)
-    distance = tip_distance(x, layout)  # [M, T+1]
-    largest = (distance - distance.cummin(1).values).amax()
-    retreat = largest + (math.inf if retreat_margin is None else retreat_margin)
-    return Guard(torque, speed, -beta * torch.linalg.inv(B), retreat)
+    return Guard(torque, speed, -beta * torch.linalg.inv(B))
 
 
-def tip_distance(x: Tensor, layout: StateLayout) -> Tensor:
-    """The peg tip's distance to its target, ``d_t = |p_tip - p*_tip|``: ``[..., dX] -> [...]``."""
-    return x[..., layout.points][..., :3].norm(dim=-1)
-
-
-def guarded(
-    u: Tensor, qd: Tensor, retreated: Tensor, guard: Guard, tripped: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Actions ``u: [n, dU]`` at joint speeds ``qd: [n, dU]``, the tip ``retreated: [n]`` (m)
-    from the nearest it has come to its target, through the guard, given which rollouts had
-    ``tripped`` it before (``[n]`` bool); returns the actions and the new ``tripped``."""
-    tripped = tripped | (qd.abs() > guard.speed).any(-1) | (retreated > guard.retreat)
+def guarded(u: Tensor, qd: Tensor, guard: Guard, tripped: Tensor) -> tuple[Tensor, Tensor]:
+    """Actions ``u: [n, dU]`` at joint speeds ``qd: [n, dU]`` through the guard, given which
+    rollouts had ``tripped`` it before (``[n]`` bool); returns the actions and the new
+    ``tripped``."""
+    tripped = tripped | (qd.abs() > guard.speed).any(-1)
     held = torch.where(tripped[:, None], qd @ guard.brake.T, u)
     return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), tripped

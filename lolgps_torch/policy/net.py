@@ -50,9 +50,6 @@ class PolicyConfig:
         the reaches to the far test areas (12 KUKA seeds, average final success 0.87 against
         0.95 at 3; docs/HISTORY.md, "the guard").
     :param guard_brake: the brake's share of the joint speeds taken away per control step.
-    :param guard_retreat: the brake also trips once the peg tip has moved this far (m) more
-        away from its target, since the nearest it came, than any rollout in D_g did (None:
-        never).
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
         scaled targets); the policy itself stays float64. float32 takes a third less loop
         time and reached as many positions over 38 paired runs, but fewer on the published
@@ -74,7 +71,6 @@ class PolicyConfig:
     guard_torque: float | None = None
     guard_speed: float = 3.0
     guard_brake: float = 0.5
-    guard_retreat: float | None = 0.05
 
     def __post_init__(self) -> None:
         check_fields(
@@ -92,7 +88,6 @@ class PolicyConfig:
                 "guard_torque": self.guard_torque is None or 0.0 < self.guard_torque < math.inf,
                 "guard_speed": 0.0 < self.guard_speed < math.inf,
                 "guard_brake": 0.0 < self.guard_brake <= 1.0,
-                "guard_retreat": self.guard_retreat is None or 0.0 <= self.guard_retreat < math.inf,
             },
         )
 
@@ -139,7 +134,6 @@ class GaussianPolicy(torch.nn.Module):
     guard_torque: Tensor
     guard_speed: Tensor
     guard_brake: Tensor
-    guard_retreat: Tensor
 
     def __init__(
         self,
@@ -167,7 +161,6 @@ class GaussianPolicy(torch.nn.Module):
         self.register_buffer("guard_torque", off.torque)
         self.register_buffer("guard_speed", off.speed)
         self.register_buffer("guard_brake", off.brake)
-        self.register_buffer("guard_retreat", off.retreat)
         self.to(device)
 
     def forward(self, x: Tensor) -> Tensor:
@@ -187,7 +180,7 @@ class GaussianPolicy(torch.nn.Module):
     @property
     def guard(self) -> Guard:
         """The bounds the acting policy keeps to (off until an S-step sets them)."""
-        return Guard(self.guard_torque, self.guard_speed, self.guard_brake, self.guard_retreat)
+        return Guard(self.guard_torque, self.guard_speed, self.guard_brake)
 
     @torch.no_grad()
     def set_guard(self, guard: Guard) -> None:
@@ -195,7 +188,6 @@ class GaussianPolicy(torch.nn.Module):
         self.guard_torque.copy_(guard.torque)
         self.guard_speed.copy_(guard.speed)
         self.guard_brake.copy_(guard.brake)
-        self.guard_retreat.copy_(guard.retreat)
 
     def covariance(self) -> Tensor:
         """``Sigma_pi = diag(sigma^2)``, ``[dU, dU]``."""
@@ -257,7 +249,7 @@ class GaussianPolicy(torch.nn.Module):
             # checkpoints from before the output scaling: scale 1, offset 0 is the same policy
             state = {"u_mean": policy.u_mean, "u_scale": policy.u_scale, **state}
             state = {"gain.weight": policy.gain.weight, "gain.bias": policy.gain.bias, **state}
-            # checkpoints from before the guard (or a part of it): unguarded there
+            # checkpoints from before the guard: unguarded
             state = {**{k: v for k, v in policy.state_dict().items() if k.startswith("guard_")},
                      **state}  # fmt: skip
             policy.load_state_dict(state)
