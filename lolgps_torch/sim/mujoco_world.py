@@ -233,8 +233,8 @@ class MujocoWorld(World):
         """Bullet's link damping as wrenches (force, then moment) at the arm bodies' centres
         of mass, written to ``xfrc_applied``: on a body of mass m, COM velocity v, angular
         velocity w and world inertia I, ``-k (1 + |v|) m v`` and ``-k (1 + |w|) I w``
-        (k = :data:`LINK_DAMPING`); a dozen numpy calls for all bodies, as each physics step
-        runs it."""
+        (k = :data:`LINK_DAMPING`); all bodies at once, in a few numpy calls, as each physics
+        step runs it."""
         omega, moving = self._omega, self._moving
         lever = (omega[:, :, None] * (self._com - self._root_com)[:, None, :]).reshape(-1, 9)
         np.add(self._linear, lever @ EPSILON, out=moving[:, 0])
