@@ -169,15 +169,20 @@ TASK_FLAGS = ConfigFlags(
         "descent-steps": ("cost.descent_steps",),
         **{flag: (f"plant.{name}",) for flag, (name,) in PLANT_FLAGS.renames.items()},
     },
-    skip=("urdf", "scale"),  # run_stream.py's --scale takes auto too
+    skip=("urdf", "scale", "mjcf"),  # run_stream.py's --scale takes auto too
 )
 
 
 def add_task_arguments(parser: argparse.ArgumentParser, default_urdf: str | None = None) -> None:
-    """Flags that pick the arm, its peg, its start pose, the world and the cost."""
+    """Flags that pick the arm (``--urdf``, or ``--mjcf`` with ``--sim mujoco``), its peg, its
+    start pose, the world and the cost."""
     group = parser.add_argument_group("arm")
-    group.add_argument(
-        "--urdf", required=default_urdf is None, default=default_urdf, help="the arm's URDF file"
+    description = group.add_mutually_exclusive_group(required=default_urdf is None)
+    description.add_argument("--urdf", default=default_urdf, help="the arm's URDF file")
+    description.add_argument(
+        "--mjcf",
+        help="the arm's MJCF file, converted to URDF (needs --sim mujoco; --ee-link may name a "
+        "body or a site)",
     )
     TASK_FLAGS.add_to(group)
 
@@ -187,6 +192,8 @@ def task_config(args: argparse.Namespace) -> TaskConfig:
     if args.descent_height < 0.0 or args.descent_steps < 0:
         raise LolgpsError("--descent-height and --descent-steps must be >= 0")
     config: TaskConfig = TASK_FLAGS.build(args)
+    if args.mjcf is not None:
+        return dataclasses.replace(config, urdf=args.mjcf, mjcf=True)
     return dataclasses.replace(config, urdf=args.urdf)
 
 

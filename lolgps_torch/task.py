@@ -73,7 +73,9 @@ class TaskConfig:
         depth and clearances stay as they are.
     :param plant: how the simulated arm departs from the URDF; only the worlds read it.
     :param sim: the simulator that steps the worlds: pybullet, or mujoco (the nominal plant
-        only; ``pip install -e '.[mujoco]'``)."""
+        only; ``pip install -e '.[mujoco]'``).
+    :param mjcf: ``urdf`` names an MJCF file (``--mjcf``), read as the URDF
+        :func:`~lolgps_torch.robot.mjcf.mjcf_urdf` makes of it; needs ``sim`` mujoco."""
 
     urdf: str
     ee_link: str | None = None
@@ -87,6 +89,7 @@ class TaskConfig:
     cost: CostConfig = field(default_factory=CostConfig)
     plant: PlantConfig = field(default_factory=PlantConfig)
     sim: Simulator = "pybullet"
+    mjcf: bool = False
 
     def __post_init__(self) -> None:
         if self.ee_link is not None and not self.ee_link:
@@ -112,6 +115,8 @@ class TaskConfig:
         self.plant.delay_steps(self.world.dt / self.world.substeps)
         if self.sim not in ("pybullet", "mujoco"):
             raise LolgpsError(f"--sim must be pybullet or mujoco, got {self.sim!r}")
+        if self.mjcf and self.sim != "mujoco":
+            raise LolgpsError("--mjcf needs --sim mujoco: PyBullet cannot load MJCF")
         check_plant(self.sim, self.plant)
         require(self.sim)
 
@@ -205,6 +210,7 @@ def load_task_arm(config: TaskConfig) -> ArmSpec:
         config.package_path,
         base_link=config.base_link,
         hold=config.held(),
+        mjcf=config.mjcf,
     )
 
 

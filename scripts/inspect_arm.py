@@ -1,6 +1,7 @@
 """Print what lolgps_torch understood of a URDF arm, and check its kinematics against PyBullet.
 
 python scripts/inspect_arm.py --urdf robots/kuka_peg.urdf [--ee-link NAME]
+python scripts/inspect_arm.py --mjcf robot.xml --sim mujoco [--ee-link BODY_OR_SITE]
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ def main() -> None:
     args = parser.parse_args()
     task = PegTask(task_config(args), n_worlds=1)
     arm = task.arm
-    print(f"URDF          {arm.source_path}  (sha256 {arm.source_sha256[:12]})")
+    kind = "MJCF" if task.config.mjcf else "URDF"
+    print(f"{kind}          {arm.source_path}  (sha256 {arm.source_sha256[:12]})")
     print(f"root link     {arm.root_link}")
     print(f"base link     {arm.base_link}  (the arm's chain starts here; --base-link)")
     print(f"end effector  {arm.ee_link}")

@@ -39,9 +39,9 @@ from lolgps_torch.cli import (
 from lolgps_torch.data.records import ConditionSummary, DistillRecord, IterationRecord
 from lolgps_torch.data.run_folder import (
     RunFolder,
+    arm_urdf,
     as_stored,
     config_differences,
-    portable_urdf,
     task_json,
 )
 from lolgps_torch.errors import LolgpsError
@@ -192,7 +192,7 @@ def plan_run(args: argparse.Namespace) -> Plan:
             if note:
                 print(note)
     conditions = list(task.placement.positions)
-    urdf_text = portable_urdf(args.urdf, task.package_path)
+    urdf_text = arm_urdf(task)
     config = as_stored(
         {
             "method": args.method,

@@ -26,7 +26,7 @@ from lolgps_torch.cli import (
     workers,
 )
 from lolgps_torch.data.records import IterationRecord
-from lolgps_torch.data.run_folder import RunFolder, as_stored, portable_urdf, task_json
+from lolgps_torch.data.run_folder import RunFolder, arm_urdf, as_stored, task_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.robot.placement import pinned
@@ -102,7 +102,7 @@ def main() -> None:
     config: LocalConfig = LOCAL_FLAGS.build(args)
     tcfg, offset = task_config(args), (float(args.hole[0]), float(args.hole[1]))
     tcfg = replace(tcfg, placement=replace(tcfg.placement, positions=(offset,)))
-    folder, urdf_text = RunFolder(args.out), portable_urdf(args.urdf, tcfg.package_path)
+    folder, urdf_text = RunFolder(args.out), arm_urdf(tcfg)
     if folder.has_config():
         raise LolgpsError(f"{folder.path} already holds a run; choose another --out")
     folder.check_writable()

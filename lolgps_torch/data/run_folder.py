@@ -124,6 +124,16 @@ def portable_urdf(path: str, package_path: Sequence[str] = ()) -> str:
     return ET.tostring(tree, encoding="unicode") if changed else text
 
 
+def arm_urdf(task: TaskConfig) -> str:
+    """The run folder's copy of ``task``'s arm: its URDF made portable (:func:`portable_urdf`),
+    or the URDF an MJCF arm reads as (:func:`~lolgps_torch.robot.mjcf.mjcf_urdf`)."""
+    if task.mjcf:
+        from lolgps_torch.robot.mjcf import mjcf_urdf  # imports MuJoCo, an extra
+
+        return mjcf_urdf(task.urdf)
+    return portable_urdf(task.urdf, task.package_path)
+
+
 def as_stored(data: Any) -> Any:
     """``data`` as it reads back from JSON (tuples become lists), for comparing with a file."""
     return json.loads(json.dumps(data))
@@ -234,7 +244,7 @@ class RunFolder:
         digest = hashlib.sha256(self.urdf_path.read_bytes()).hexdigest()
         if digest != task.get("urdf_sha256"):
             raise LolgpsError(f"{self.urdf_path} does not match its SHA-256 in config.json")
-        return replace(config, urdf=str(self.urdf_path.resolve()))
+        return replace(config, urdf=str(self.urdf_path.resolve()), mjcf=False)
 
     def has_config(self) -> bool:
         return self.config_path.is_file()

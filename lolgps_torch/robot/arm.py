@@ -58,7 +58,7 @@ if TYPE_CHECKING:
 
 _ACTUATED = ("revolute", "continuous")
 _HELD = ("revolute", "continuous", "prismatic")  # the moving joints a position can be held at
-_DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
+DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
 # a prefix of an element's or attribute's name, as in <drake:member> or drake:acceleration="..."
 _PREFIXED = re.compile(r"(?:<|</|\s)([A-Za-z_][\w.-]*):[A-Za-z_][\w.-]*(?=[\s=/>])")
 # mesh file extensions PyBullet reads (any case)
@@ -77,6 +77,7 @@ def load_arm(
     package_path: Sequence[str] = (),
     base_link: str | None = None,
     hold: Mapping[str, float] | None = None,
+    mjcf: bool = False,
 ) -> ArmSpec:
     """Read and validate a URDF arm; raise :class:`LolgpsError` with a one-line reason.
 
@@ -90,9 +91,10 @@ def load_arm(
         above it is held fixed, as is every joint off the chain.
     :param hold: positions (rad or m) of held joints; the others are held at 0, or at the
         middle of their limits when 0 is outside them.
+    :param mjcf: ``path`` is an MJCF file, converted to URDF (:mod:`.mjcf`).
     """
     peg = peg or PegConfig()
-    raw, tree, robot, root = _parse(path, package_path)
+    raw, tree, robot, root = _parse(path, package_path, mjcf)
     parent_joint = {j.child: j for j in robot.robot.joints}
     links = [link.name for link in robot.robot.links]
     start, ee_link, chain = _arm_chain(robot, root, path, ee_link, base_link)
@@ -214,7 +216,7 @@ def _with_derived_effort(arm: ArmSpec, unknown: Sequence[str], path: str) -> Arm
             continue
         limit = joint.find("limit")
         if limit is None:  # a continuous joint published without one
-            limit = ET.SubElement(joint, "limit", velocity=repr(_DEFAULT_VELOCITY))
+            limit = ET.SubElement(joint, "limit", velocity=repr(DEFAULT_VELOCITY))
         limit.set("effort", repr(derived[name]))
         warnings.warn(
             f"{path}: joint {name!r}: <limit> effort is not given (0); using {derived[name]:.4g} "
@@ -230,16 +232,24 @@ def _with_derived_effort(arm: ArmSpec, unknown: Sequence[str], path: str) -> Arm
     return replace(arm, urdf_text=ET.tostring(tree, encoding="unicode"), effort=effort)
 
 
-def _parse(path: str, package_path: Sequence[str]) -> tuple[bytes, ET.Element, yourdfpy.URDF, str]:
+def _parse(
+    path: str, package_path: Sequence[str], mjcf: bool = False
+) -> tuple[bytes, ET.Element, yourdfpy.URDF, str]:
     """The file's bytes, its XML tree, yourdfpy's model and the root link; one-line errors for
-    bad files, raised before yourdfpy, pytorch-kinematics or PyBullet read them."""
+    bad files, raised before yourdfpy, pytorch-kinematics or PyBullet read them.  ``mjcf``:
+    the file is MJCF, read as the URDF :func:`~lolgps_torch.robot.mjcf.mjcf_urdf` makes of it."""
     import yourdfpy  # here, not at the top: see the module docstring
 
     if not os.path.isfile(path):
-        raise LolgpsError(f"URDF not found: {path}")
+        raise LolgpsError(f"{'MJCF' if mjcf else 'URDF'} not found: {path}")
     with open(path, "rb") as fh:
         raw = fh.read()
-    text = declare_prefixes(raw.decode("utf-8", errors="replace"))
+    if mjcf:
+        from lolgps_torch.robot.mjcf import mjcf_urdf  # imports MuJoCo, an extra
+
+        text = mjcf_urdf(path)
+    else:
+        text = declare_prefixes(raw.decode("utf-8", errors="replace"))
     if "<!ENTITY" in text:
         raise LolgpsError(f"{path}: URDF declares XML entities; they are not resolved")
     try:
@@ -308,12 +318,12 @@ def _limits(j: yourdfpy.Joint) -> tuple[float, float, float, float]:
     effort 0 where it is not given); continuous joints get [-pi, pi] for placement."""
     lim = j.limit
     if lim is None:  # a continuous joint published without a <limit>
-        return -math.pi, math.pi, 0.0, _DEFAULT_VELOCITY
+        return -math.pi, math.pi, 0.0, DEFAULT_VELOCITY
     if j.type == "continuous" or lim.lower is None or lim.upper is None:
         lower, upper = -math.pi, math.pi
     else:
         lower, upper = float(lim.lower), float(lim.upper)
-    velocity = float(lim.velocity) if lim.velocity else _DEFAULT_VELOCITY
+    velocity = float(lim.velocity) if lim.velocity else DEFAULT_VELOCITY
     return lower, upper, float(lim.effort or 0.0), velocity
 
 

@@ -81,16 +81,17 @@ def _quaternion(yaw: float, tilt: float) -> np.ndarray:
     return np.array([cy * ct, -sy * st, cy * st, sy * ct])
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of ``[n, 3]`` arrays (np.cross costs more on a few rows)."""
-    return np.stack(
-        [
-            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
-            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
-        ],
-        axis=1,
-    )
+def _levi_civita() -> np.ndarray:
+    """``E [9, 3]`` with ``E[3 j + k, i]`` the Levi-Civita symbol e_ijk, so that a row-wise
+    ``(a b^T).reshape(-1, 9) @ E`` is ``a x b`` (one matrix product: np.cross costs more on
+    a few rows)."""
+    E = np.zeros((9, 3))
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        E[3 * j + k, i], E[3 * k + j, i] = 1.0, -1.0
+    return E
+
+
+EPSILON = _levi_civita()
 
 
 class MujocoWorld(World):
@@ -120,10 +121,8 @@ class MujocoWorld(World):
         self.dof_ids = m.jnt_dofadr[joints]
         self.point_body = m.body(arm.point_link).id
         self.hole_mocap = m.body_mocapid[m.body(HOLE).id]
-        self.damped = np.array(
-            [b for b in range(1, m.nbody) if m.body_mass[b] > 0 and m.body_mocapid[b] < 0]
-        )
         self._stabilise_damping(joints)
+        self._damping_views()
         # the URDF's joint damping, applied explicitly as PyBullet does (MuJoCo's own is
         # implicit, which damps the light wrist joints far less within a physics step)
         self.damping = m.dof_damping[self.dof_ids].copy()
@@ -196,7 +195,12 @@ class MujocoWorld(World):
         mujoco.mj_forward(m, d)
 
     def _joint_state(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.data.qpos[self.qpos_ids].copy(), self.data.qvel[self.dof_ids].copy()
+        """The joints now; a physics step since the last reset whose accelerations were not
+        finite (MuJoCo counts it, and resets the data) is a :class:`NumericalError`."""
+        d = self.data
+        if d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0:
+            raise NumericalError("the simulation blew up: MuJoCo's accelerations are not finite")
+        return d.qpos[self.qpos_ids].copy(), d.qvel[self.dof_ids].copy()
 
     def _point_pose(self) -> tuple[np.ndarray, np.ndarray]:
         mujoco.mj_kinematics(self.model, self.data)
@@ -206,28 +210,40 @@ class MujocoWorld(World):
     def _physics_step(self, tau: np.ndarray) -> None:
         m, d = self.model, self.data
         mujoco.mj_step1(m, d)  # positions and velocities: what the damping wrenches need
-        d.xfrc_applied[self.damped] = self._link_damping()
+        self._link_damping()
         d.qfrc_applied[self.dof_ids] = tau - self.damping * d.qvel[self.dof_ids]
         mujoco.mj_step2(m, d)
-        if d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0:
-            raise NumericalError("the simulation blew up: MuJoCo's accelerations are not finite")
 
-    def _link_damping(self) -> np.ndarray:
-        """Bullet's link damping as wrenches ``[bodies, 6]`` (force, then moment) at the
-        centres of mass of the bodies :attr:`damped`: on a body of mass m, COM velocity v,
-        angular velocity w and world inertia I, ``-k (1 + |v|) m v`` and
-        ``-k (1 + |w|) I w`` (k = :data:`LINK_DAMPING`)."""
-        m, d, b = self.model, self.data, self.damped
-        omega, linear = d.cvel[b, :3], d.cvel[b, 3:]  # at the subtree's centre of mass
-        v = linear + _cross(omega, d.xipos[b] - d.subtree_com[m.body_rootid[b]])
-        R = d.ximat[b].reshape(-1, 3, 3)
-        local = m.body_inertia[b] * np.einsum("bji,bj->bi", R, omega)
-        I_omega = np.einsum("bij,bj->bi", R, local)
-        speed = np.sqrt(np.einsum("bi,bi->b", v, v))[:, None]
-        spin = np.sqrt(np.einsum("bi,bi->b", omega, omega))[:, None]
-        force = -LINK_DAMPING * (1 + speed) * m.body_mass[b, None] * v
-        moment = -LINK_DAMPING * (1 + spin) * I_omega
-        return np.concatenate([force, moment], axis=1)
+    def _damping_views(self) -> None:
+        """Views into the data's arrays that :meth:`_link_damping` reads and writes, for the
+        arm's bodies (1 up to the hole's; a massless one gets no wrench): these are the same
+        arrays for the world's life, so each physics step costs no look-up or copy of them."""
+        m, d = self.model, self.data
+        arm = slice(1, m.body(HOLE).id)
+        (root,) = set(m.body_rootid[arm].tolist())  # a URDF is one tree
+        self._mass = -LINK_DAMPING * m.body_mass[arm, None]
+        self._inertia = -LINK_DAMPING * m.body_inertia[arm, None, :]  # principal, with rotors
+        self._omega, self._linear = d.cvel[arm, :3], d.cvel[arm, 3:]  # at the subtree's COM
+        self._com, self._root_com = d.xipos[arm], d.subtree_com[root]
+        self._R = d.ximat[arm].reshape(-1, 3, 3)
+        self._wrench = d.xfrc_applied[arm].reshape(-1, 2, 3)
+        self._moving = np.empty_like(self._wrench)  # v and w, then v and I w
+
+    def _link_damping(self) -> None:
+        """Bullet's link damping as wrenches (force, then moment) at the arm bodies' centres
+        of mass, written to ``xfrc_applied``: on a body of mass m, COM velocity v, angular
+        velocity w and world inertia I, ``-k (1 + |v|) m v`` and ``-k (1 + |w|) I w``
+        (k = :data:`LINK_DAMPING`); all bodies at once, in a few numpy calls, as each physics
+        step runs it."""
+        omega, moving = self._omega, self._moving
+        lever = (omega[:, :, None] * (self._com - self._root_com)[:, None, :]).reshape(-1, 9)
+        np.add(self._linear, lever @ EPSILON, out=moving[:, 0])
+        moving[:, 1] = omega
+        factor = 1 + np.sqrt(np.einsum("bki,bki->bk", moving, moving))[:, :, None]
+        R = self._R
+        np.matmul(self._inertia * (omega[:, None, :] @ R), R.transpose(0, 2, 1), out=moving[:, 1:])
+        factor[:, 0] *= self._mass
+        np.multiply(factor, moving, out=self._wrench)
 
     def gravity_compensation(self) -> np.ndarray:
         """``g(q) [dof]`` at the current joint angles: MuJoCo's inverse dynamics at rest."""

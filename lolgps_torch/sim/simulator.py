@@ -306,8 +306,8 @@ class World(ABC):
         acting = np.clip(u + g, -self.effort, self.effort) - g
         self._issued = np.concatenate([acting[None], self._issued])[: len(self._issued)]
         self._prev_points = self._points
-        for s in range(substeps):
-            self._physics_step(np.clip(held[s] + g, -self.effort, self.effort))
+        for tau in np.clip(held[:substeps] + g, -self.effort, self.effort):
+            self._physics_step(tau)
         return self.observe()
 
     def tip_distance(self) -> float:

@@ -8,7 +8,9 @@ of the first local controller (the hold of the start pose planned on the arm's m
 inserts the peg, with its smoothed exploration noise, seed 0) as the local learner's first
 iteration does: stepping with contact, gravity compensation, state extraction and the cost.  The two simulators' batches alternate,
 so drifting load hits both alike; medians over ``repeats``, and the ratio
-``mujoco / pybullet`` per rollout.  On a shared machine compare the ratio, not the seconds.
+``mujoco / pybullet`` per rollout, of wall time and of this process's CPU time
+(``time.process_time``, which other processes on a shared machine disturb less).  On a
+shared machine compare the ratios, not the seconds.
 """
 
 from __future__ import annotations
@@ -26,8 +28,9 @@ from lolgps_torch.task import PegTask, TaskConfig
 
 
 def bench_sim(urdf: str, samples: int = 5, repeats: int = 5) -> dict[str, float]:
-    """Median seconds per rollout in each simulator (``<sim>_s``), its success rate over the
-    timed batches (``<sim>_success``), and ``ratio = mujoco_s / pybullet_s``."""
+    """Median seconds per rollout in each simulator (``<sim>_s``), its CPU seconds
+    (``<sim>_cpu_s``), its success rate over the timed batches (``<sim>_success``), and
+    ``ratio = mujoco_s / pybullet_s``, ``cpu_ratio`` the same of CPU seconds."""
     names = get_args(Simulator)
     tasks = {name: PegTask(TaskConfig(urdf=urdf, sim=name), n_worlds=1) for name in names}
     try:
@@ -40,19 +43,23 @@ def bench_sim(urdf: str, samples: int = 5, repeats: int = 5) -> dict[str, float]
             for name, learner in learners.items()
         }
         times: dict[str, list[float]] = {name: [] for name in names}
+        cpu: dict[str, list[float]] = {name: [] for name in names}
         successes: dict[str, list[float]] = {name: [] for name in names}
         for _ in range(repeats):
             for name, learner in learners.items():
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 batch = learner.sample(first[name])
                 times[name].append((time.perf_counter() - t0) / samples)
+                cpu[name].append((time.process_time() - c0) / samples)
                 successes[name].append(float(batch.success.double().mean()))
     finally:
         for task in tasks.values():
             task.close()
     result = {f"{name}_s": statistics.median(times[name]) for name in names}
+    result |= {f"{name}_cpu_s": statistics.median(cpu[name]) for name in names}
     result |= {f"{name}_success": statistics.mean(successes[name]) for name in names}
     result["ratio"] = result["mujoco_s"] / result["pybullet_s"]
+    result["cpu_ratio"] = result["mujoco_cpu_s"] / result["pybullet_cpu_s"]
     return result
 
 
