@@ -36,17 +36,25 @@ def rank(unit: str) -> int:
 
 def imports() -> list[tuple[str, str]]:
     """``(importing unit, imported unit)`` for every ``lolgps_torch`` import in the package."""
-    edges = set()
+    return sorted(
+        {(unit_of(s), unit_of(t)) for s, t in module_imports() if unit_of(s) != unit_of(t)}
+    )
+
+
+def module_imports() -> list[tuple[str, str]]:
+    """``(importing module, imported module)`` for every ``lolgps_torch`` import in the
+    package, lazy ones inside functions included (a package's ``__init__`` is the package)."""
+    edges: set[tuple[str, str]] = set()
     for path in PACKAGE.rglob("*.py"):
         parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
-        source = unit_of(".".join(parts))
+        source = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
         for node in ast.walk(ast.parse(path.read_text())):
             names = []
             if isinstance(node, ast.ImportFrom) and node.module:
                 names = [node.module]
             elif isinstance(node, ast.Import):
                 names = [alias.name for alias in node.names]
-            for name in names:
-                if name.startswith("lolgps_torch.") and unit_of(name) != source:
-                    edges.add((source, unit_of(name)))
+            edges.update(
+                (source, n) for n in names if n.startswith("lolgps_torch.") and n != source
+            )
     return sorted(edges)

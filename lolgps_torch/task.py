@@ -39,17 +39,12 @@ from lolgps_torch.robot.placement import (
 )
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.engines import engine_errors
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
-from lolgps_torch.sim.simulator import (
-    Simulator,
-    WorldConfig,
-    check_plant,
-    engine_errors,
-    require,
-)
+from lolgps_torch.sim.simulator import Simulator, WorldConfig, check_plant, require
 from lolgps_torch.types import Trajectories
 
 IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses

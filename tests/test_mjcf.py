@@ -18,7 +18,8 @@ from conftest import SMALL, ScriptRun
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.mjcf import mjcf_urdf
-from lolgps_torch.sim.simulator import WorldConfig, build_world
+from lolgps_torch.sim.engines import build_world
+from lolgps_torch.sim.simulator import WorldConfig
 
 mujoco = pytest.importorskip("mujoco")
 

@@ -19,7 +19,8 @@ from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim import simulator
-from lolgps_torch.sim.simulator import WorldConfig, build_world
+from lolgps_torch.sim.engines import build_world
+from lolgps_torch.sim.simulator import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
 
 mujoco = pytest.importorskip("mujoco")

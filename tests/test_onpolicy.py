@@ -3,14 +3,17 @@ the labelled rows."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import torch
 from test_replay import make_samples
 
 from lolgps_torch.data import ReplayBuffer
+from lolgps_torch.errors import NumericalError
 from lolgps_torch.lolgps.distillation import Labels
-from lolgps_torch.lolgps.onpolicy import Teacher, gated_rows, support_distance
+from lolgps_torch.lolgps.onpolicy import PolicyVisits, Teacher, gated_rows, support_distance
+from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.state import StateLayout
 from lolgps_torch.types import DistillBatch, LinearGaussian, VisitedRows
 
@@ -82,3 +85,21 @@ def test_visited_rows_round_trip_through_the_replay(tmp_path: Path) -> None:
     empty = VisitedRows(DistillBatch(*(f[:0] for f in visited.rows)), visited.t[:0], visited.t[:0])
     replay.append_condition(2, (0.0, 0.0), samples, iterations=1, visited=empty)
     assert replay.read_condition(2).visited is None
+
+
+class _BlowingUp:
+    """A task whose every batch of rollouts blows the simulation up."""
+
+    layout, device, T = LAYOUT, torch.device("cpu"), T
+
+    def sample(self, actor: object, offsets: object) -> None:
+        raise NumericalError("the simulation blew up: joint speed 119 rad/s (bound 100)")
+
+
+def test_a_policy_that_blows_the_simulation_up_misses_everywhere() -> None:
+    teacher, _ = _teacher()
+    visits = PolicyVisits(_BlowingUp(), noisy=2, gate=3.0, floor=0.005)  # type: ignore[arg-type]
+    policy = GaussianPolicy(LAYOUT.dX, LAYOUT.dU)
+    seen = visits(policy, [teacher, teacher], seed=0)
+    assert seen.distances == [math.inf, math.inf] and seen.visited is None
+    assert seen.rollouts == 6  # the noiseless and 2 noisy rollouts at each position

@@ -1,5 +1,5 @@
 """What a video's frame shows: a :class:`Scene`, the simulator seam's display of the run's arm
-and a coloured copy of its hole (:func:`~lolgps_torch.sim.simulator.build_display`), posed
+and a coloured copy of its hole (:func:`~lolgps_torch.sim.engines.build_display`), posed
 from a :class:`Clip`'s recorded joint angles and photographed by a camera fixed per clip,
 and the :func:`caption` drawn on it. No physics runs in the display. ``render.py`` records
 the clips and encodes the frames into a video.
@@ -19,7 +19,8 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from lolgps_torch.robot.spec import ArmSpec
-from lolgps_torch.sim.simulator import Camera, Display, WorldConfig, build_display
+from lolgps_torch.sim.engines import build_display
+from lolgps_torch.sim.simulator import Camera, Display, WorldConfig
 
 View = Literal["wide", "mouth"]
 

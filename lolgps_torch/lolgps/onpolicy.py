@@ -19,6 +19,7 @@ own errors take it, not only where the teachers went.
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import NamedTuple
@@ -26,6 +27,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from lolgps_torch.errors import NumericalError
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, targets
 from lolgps_torch.policy import GaussianPolicy, policy_actor
 from lolgps_torch.state import StateLayout
@@ -113,14 +115,18 @@ class PolicyVisits:
     ) -> Visit:
         """One batch of rollouts: the noiseless one at every teacher's position, then (when
         ``label``) ``noisy`` noisy ones at each, their states labelled by their own position's
-        teacher."""
+        teacher. A policy that blows the simulation up misses everywhere (distance inf) and
+        gives no rows."""
         C, T, dU = len(teachers), self.task.T, self.task.layout.dU
         noisy = self.noisy if label else 0
         offsets = [teacher.offset for teacher in teachers] * (1 + noisy)
         gen = torch.Generator().manual_seed(seed)
         noise = torch.randn(C * noisy, T, dU, generator=gen, dtype=torch.float64)
         noise = torch.cat([noise.new_zeros(C, T, dU), noise]).to(self.task.device)
-        runs: Trajectories = self.task.sample(policy_actor(policy, noise), offsets)
+        try:
+            runs: Trajectories = self.task.sample(policy_actor(policy, noise), offsets)
+        except NumericalError:
+            return Visit([math.inf] * C, None, len(offsets))
         parts = [
             gated_rows(
                 runs.x[c::C], teacher, teacher.labels, self.task.layout, self.gate, self.floor

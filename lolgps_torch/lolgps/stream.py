@@ -25,6 +25,7 @@ Naive sequential learning is the same loop without p_pre and without the replay.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -373,7 +374,11 @@ def noiseless_distance(task: PegTask, p: LinearGaussian, offset: tuple[float, fl
 def policy_distances(
     task: PegTask, policy: GaussianPolicy, offsets: list[tuple[float, float]]
 ) -> list[float]:
-    """Final distances (m) of the global policy's noiseless rollouts (NaN untrained)."""
+    """Final distances (m) of the global policy's noiseless rollouts (NaN untrained; inf at
+    every offset where the batch blew the simulation up)."""
     if not policy.trained:
         return [float("nan")] * len(offsets)
-    return task.sample(policy_actor(policy), offsets).final_distance.tolist()
+    try:
+        return task.sample(policy_actor(policy), offsets).final_distance.tolist()
+    except NumericalError:
+        return [math.inf] * len(offsets)

@@ -45,7 +45,7 @@ from lolgps_torch.robot.peg import (
     carried_peg_radius,
 )
 from lolgps_torch.robot.rigid_body import ArmDynamics
-from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.robot.spec import DEFAULT_VELOCITY, ArmSpec
 from lolgps_torch.robot.validate import (
     ArmWarning,
     check_actuated_limit,
@@ -58,7 +58,6 @@ if TYPE_CHECKING:
 
 _ACTUATED = ("revolute", "continuous")
 _HELD = ("revolute", "continuous", "prismatic")  # the moving joints a position can be held at
-DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
 # a prefix of an element's or attribute's name, as in <drake:member> or drake:acceleration="..."
 _PREFIXED = re.compile(r"(?:<|</|\s)([A-Za-z_][\w.-]*):[A-Za-z_][\w.-]*(?=[\s=/>])")
 # mesh file extensions PyBullet reads (any case)

@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.arm import DEFAULT_VELOCITY
+from lolgps_torch.robot.spec import DEFAULT_VELOCITY
 
 ROOT_LINK = "world"
 

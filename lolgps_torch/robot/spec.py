@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
+
 
 @dataclass(frozen=True)
 class ArmSpec:

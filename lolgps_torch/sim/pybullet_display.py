@@ -1,7 +1,7 @@
 """The display in PyBullet: the run's arm and a coloured copy of its hole in a client of their
 own, posed from joint angles and photographed with PyBullet's CPU renderer
 (``ER_TINY_RENDERER``, headless).  No physics runs in it, so it draws the runs of every
-simulator (:func:`~lolgps_torch.sim.simulator.build_display`).
+simulator (:func:`~lolgps_torch.sim.engines.build_display`).
 
 The arm is drawn from its own visual shapes (meshes or primitives). PyBullet draws a link
 without one from its collision shapes; a link with neither gets a capsule from its parent's

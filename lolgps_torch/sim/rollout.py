@@ -16,8 +16,9 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.engines import build_world
 from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
-from lolgps_torch.sim.simulator import Simulator, World, WorldConfig, build_world
+from lolgps_torch.sim.simulator import Simulator, World, WorldConfig
 from lolgps_torch.types import LinearGaussian
 
 
