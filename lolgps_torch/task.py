@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -25,6 +26,7 @@ from lolgps_torch.dynamics.identify import (
     identified_dynamics,
     identify,
 )
+from lolgps_torch.dynamics.latency import DelayConfig, DelayEstimate, estimate_delay, excite
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.ik import solve_ik
@@ -46,6 +48,7 @@ from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.simulator import (
     Simulator,
     WorldConfig,
+    build_world,
     check_plant,
     engine_errors,
     require,
@@ -361,6 +364,21 @@ class PegTask:
         self.sampler.close()
         if self.pool is not None:
             self.pool.close()
+
+
+def measure_delay(config: TaskConfig, settings: DelayConfig) -> DelayEstimate:
+    """The command delay of the arm ``config`` describes, estimated from excitation rollouts at
+    its start pose (:mod:`lolgps_torch.dynamics.latency`) in a world of its own, so that the
+    task's worlds and random streams are untouched."""
+    arm = load_task_arm(config)
+    geometry = place_task(arm, PegKinematics(arm), config.placement, config.world.depth)
+    world = build_world(config.sim, arm, config.world, geometry.nominal_mouth, config.plant)
+    try:
+        world.set_hole((0.0, 0.0))
+        data = excite(world, np.asarray(geometry.q0, dtype=np.float64), settings)
+    finally:
+        world.close()
+    return estimate_delay(data, config.world.dt, config.world.substeps, settings.longest)
 
 
 def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:
