@@ -85,15 +85,15 @@ def excite(world: World, q0: np.ndarray, config: DelayConfig) -> Excitation:
     """Run the excitation rollouts (module docstring) in ``world``, which must have its hole
     set; the commands' scale comes from the URDF's effective inertia at ``q0``."""
     n, dt = world.arm.dof, world.config.dt
-    sigma = config.speed * world.effective_inertia(q0).numpy() / dt
+    sigma = config.speed * world.effective_inertia(q0.tolist()).numpy() / dt
     rng = np.random.default_rng(config.seed)
     u = rng.normal(0.0, 1.0, (config.rollouts, config.steps, n)) * sigma
-    states = []
+    rollouts = []
     for r in range(config.rollouts):
-        x = [world.reset(q0, key=(r,))]
-        x += [world.step(u[r, t]) for t in range(config.steps)]
-        states.append(np.stack(x))
-    x = np.stack(states)
+        states = [world.reset(q0, key=(r,))]
+        states += [world.step(u[r, t]) for t in range(config.steps)]
+        rollouts.append(np.stack(states))
+    x = np.stack(rollouts)
     return Excitation(x[..., :n], x[..., n : 2 * n], u)
 
 
