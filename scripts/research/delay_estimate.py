@@ -5,8 +5,9 @@ true delay, for each arm, delay and sensor noise given.
         --delays 0 0.01 0.02 0.03 0.04 0.05 --obs-noise 0 0.001
 
 Prints one line per (delay, noise): the true and estimated delay (physics steps and s), and
-how much larger the residual of the fit of the nearest other candidate is (the margin,
-``lolgps_torch/dynamics/latency.py``). The plant is read here only to set the simulated arm.
+how much larger the residual of the next best candidate's fit is (the margin,
+``lolgps_torch/dynamics/latency.py``), and that of the fit with no delay (how badly a model that
+takes each command at once explains the arm). The plant is read here only to set the simulated arm.
 """
 
 from __future__ import annotations
@@ -50,7 +51,8 @@ def main() -> None:
         print(
             f"delay {plant.action_delay:.3f} s, noise {plant.obs_noise:g}: estimated "
             f"{estimate.seconds:.3f} s ({estimate.steps} physics steps), next fit's residual "
-            f"x{margin:.3g}, {time.perf_counter() - start:.1f} s"
+            f"x{margin:.3g}, no delay's x{estimate.relative_rss[0]:.3g}, "
+            f"{time.perf_counter() - start:.1f} s"
         )
 
 
