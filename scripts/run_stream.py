@@ -17,7 +17,7 @@ interrupted run continues from its last completed condition with --resume.
 Unless --known-delay is given or --no-detect-delay, the arm's command delay is first estimated
 from a few excitation rollouts at the start pose (``lolgps_torch/dynamics/latency.py``, on
 random streams of its own); a delay found (not zero) becomes the learner's known delay, and
-from a whole control step on the first controller is the hold (``--model-plans 0``), as one
+from half a control step on the first controller is the hold (``--model-plans 0``), as one
 printed line, config.json's and summary.json's ``detected_delay`` (s) say.
 """
 
@@ -180,11 +180,11 @@ def with_delay(
     task: TaskConfig, stream: StreamConfig, seconds: float
 ) -> tuple[TaskConfig, StreamConfig]:
     """The task and stream allowing for a command delay of ``seconds``: the known delay (the
-    state carries the last actions, the model acts on each command late), and from a whole
+    state carries the last actions, the model acts on each command late), and from half a
     control step on the hold as the first controller (``--model-plans 0``: a controller
-    planned on the model shakes in contact a step late, docs/RESULTS.md section 8)."""
+    planned on the model shakes in contact 40 or 50 ms late, docs/RESULTS.md section 8)."""
     task = replace(task, world=replace(task.world, known_delay=seconds))
-    if seconds >= task.world.dt - 1e-9:
+    if seconds >= task.world.dt / 2:
         stream = replace(stream, local=replace(stream.local, model_plans=0))
     return task, stream
 
