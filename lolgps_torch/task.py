@@ -26,7 +26,6 @@ from lolgps_torch.dynamics.identify import (
     identified_dynamics,
     identify,
 )
-from lolgps_torch.dynamics.latency import DelayConfig, DelayEstimate, estimate_delay, excite
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.ik import solve_ik
@@ -41,6 +40,7 @@ from lolgps_torch.robot.placement import (
 )
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.latency import DelayConfig, DelayEstimate, estimate_delay, excite
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
@@ -368,7 +368,7 @@ class PegTask:
 
 def measure_delay(config: TaskConfig, settings: DelayConfig) -> DelayEstimate:
     """The command delay of the arm ``config`` describes, estimated from excitation rollouts at
-    its start pose (:mod:`lolgps_torch.dynamics.latency`) in a world of its own, so that the
+    its start pose (:mod:`lolgps_torch.sim.latency`) in a world of its own, so that the
     task's worlds and random streams are untouched."""
     arm = load_task_arm(config)
     geometry = place_task(arm, PegKinematics(arm), config.placement, config.world.depth)

@@ -15,7 +15,7 @@ are checked before anything is written. An
 interrupted run continues from its last completed condition with --resume.
 
 Unless --known-delay is given or --no-detect-delay, the arm's command delay is first estimated
-from a few excitation rollouts at the start pose (``lolgps_torch/dynamics/latency.py``, on
+from a few excitation rollouts at the start pose (``lolgps_torch/sim/latency.py``, on
 random streams of its own); a delay found (not zero) becomes the learner's known delay, and
 from half a control step on the first controller is the hold (``--model-plans 0``), as one
 printed line, config.json's and summary.json's ``detected_delay`` (s) say.
@@ -50,13 +50,13 @@ from lolgps_torch.data.run_folder import (
     portable_urdf,
     task_json,
 )
-from lolgps_torch.dynamics.latency import DelayConfig
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.evaluation.square import SquareConfig, square_stream
 from lolgps_torch.lolgps import METHODS, StreamConfig, make_learner, method_config
 from lolgps_torch.progress import Bar
 from lolgps_torch.robot.placement import pinned
+from lolgps_torch.sim.latency import DelayConfig
 from lolgps_torch.task import PegTask, TaskConfig, fit_scale, measure_delay, scaled
 
 STREAM_FLAGS = ConfigFlags(

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from conftest import ROOT, SMALL, finish_script, start_script
 
-from lolgps_torch.dynamics.latency import DelayConfig, estimate_delay, excite, impulse
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.latency import DelayConfig, estimate_delay, excite, impulse
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 

@@ -6,7 +6,7 @@ true delay, for each arm, delay and sensor noise given.
 
 Prints one line per (delay, noise): the true and estimated delay (physics steps and s), and
 how much larger the residual of the next best candidate's fit is (the margin,
-``lolgps_torch/dynamics/latency.py``), and that of the fit with no delay (how badly a model that
+``lolgps_torch/sim/latency.py``), and that of the fit with no delay (how badly a model that
 takes each command at once explains the arm). The plant is read here only to set the simulated arm.
 """
 
@@ -17,7 +17,7 @@ import time
 from dataclasses import replace
 
 from lolgps_torch.cli import run
-from lolgps_torch.dynamics.latency import DelayConfig
+from lolgps_torch.sim.latency import DelayConfig
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.task import TaskConfig, fit_scale, measure_delay
 
