@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -39,7 +40,8 @@ from lolgps_torch.robot.placement import (
 )
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
-from lolgps_torch.sim.engines import engine_errors
+from lolgps_torch.sim.engines import build_world, engine_errors
+from lolgps_torch.sim.latency import DelayConfig, DelayEstimate, estimate_delay, excite
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
@@ -362,6 +364,21 @@ class PegTask:
         self.sampler.close()
         if self.pool is not None:
             self.pool.close()
+
+
+def measure_delay(config: TaskConfig, settings: DelayConfig) -> DelayEstimate:
+    """The command delay of the arm ``config`` describes, estimated from excitation rollouts at
+    its start pose (:mod:`lolgps_torch.sim.latency`) in a world of its own, so that the
+    task's worlds and random streams are untouched."""
+    arm = load_task_arm(config)
+    geometry = place_task(arm, PegKinematics(arm), config.placement, config.world.depth)
+    world = build_world(config.sim, arm, config.world, geometry.nominal_mouth, config.plant)
+    try:
+        world.set_hole((0.0, 0.0))
+        data = excite(world, np.asarray(geometry.q0, dtype=np.float64), settings)
+    finally:
+        world.close()
+    return estimate_delay(data, config.world.dt, config.world.substeps, settings.longest)
 
 
 def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:

@@ -13,6 +13,12 @@ each condition) and summary.json, and prints a table at the end. Every flag, the
 and the reachability of every hole offset (the hole is placed so that all are reachable)
 are checked before anything is written. An
 interrupted run continues from its last completed condition with --resume.
+
+Unless --known-delay is given or --no-detect-delay, the arm's command delay is first estimated
+from a few excitation rollouts at the start pose (``lolgps_torch/sim/latency.py``, on
+random streams of its own); a delay found (not zero) becomes the learner's known delay, and
+from half a control step on the first controller is the hold (``--model-plans 0``), as one
+printed line, config.json's and summary.json's ``detected_delay`` (s) say.
 """
 
 from __future__ import annotations
@@ -50,7 +56,8 @@ from lolgps_torch.evaluation.square import SquareConfig, square_stream
 from lolgps_torch.lolgps import METHODS, StreamConfig, make_learner, method_config
 from lolgps_torch.progress import Bar
 from lolgps_torch.robot.placement import pinned
-from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled
+from lolgps_torch.sim.latency import DelayConfig
+from lolgps_torch.task import PegTask, TaskConfig, fit_scale, measure_delay, scaled
 
 STREAM_FLAGS = ConfigFlags(
     StreamConfig(),
@@ -122,6 +129,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--resume", action="store_true", help="continue an interrupted run in --out"
     )
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    parser.add_argument(
+        "--detect-delay",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="estimate the arm's command delay from excitation rollouts before the stream and "
+        "allow for it, unless --known-delay is given (default: on)",
+    )
     add_workers_argument(parser)
     return parser.parse_args(argv)
 
@@ -162,6 +176,39 @@ def check_folder(folder: RunFolder, config: dict[str, Any], resume: bool) -> Non
     folder.check_writable()
 
 
+def with_delay(
+    task: TaskConfig, stream: StreamConfig, seconds: float
+) -> tuple[TaskConfig, StreamConfig]:
+    """The task and stream allowing for a command delay of ``seconds``: the known delay (the
+    state carries the last actions, the model acts on each command late), and from half a
+    control step on the hold as the first controller (``--model-plans 0``: a controller
+    planned on the model shakes in contact 40 or 50 ms late, docs/RESULTS.md section 8)."""
+    task = replace(task, world=replace(task.world, known_delay=seconds))
+    if seconds >= task.world.dt / 2:
+        stream = replace(stream, local=replace(stream.local, model_plans=0))
+    return task, stream
+
+
+def detected_delay(args: argparse.Namespace, task: TaskConfig, folder: RunFolder) -> float:
+    """The command delay (s) the run allows for beyond the flags: on --resume the one its
+    folder records; else, unless --known-delay is given or --no-detect-delay, the one
+    estimated from excitation rollouts (:func:`~lolgps_torch.task.measure_delay`), said in
+    one line when not zero."""
+    if args.resume:
+        return float(folder.read_config().get("detected_delay", 0.0))
+    if not args.detect_delay or task.world.known_delay > 0.0:
+        return 0.0
+    settings = DelayConfig()
+    estimate = measure_delay(task, settings)
+    if estimate.steps:
+        print(
+            f"the arm's commands act {estimate.seconds * 1000:.0f} ms late (estimated from "
+            f"{settings.rollouts} excitation rollouts): the learner allows for it "
+            "(--known-delay; --no-detect-delay to learn without)"
+        )
+    return estimate.seconds
+
+
 def plan_run(args: argparse.Namespace) -> Plan:
     """Check every flag, the conditions and the output folder; write nothing."""
     device = check_device(args.device)
@@ -193,6 +240,11 @@ def plan_run(args: argparse.Namespace) -> Plan:
                 print(note)
     conditions = list(task.placement.positions)
     urdf_text = arm_urdf(task)
+    delay = detected_delay(args, task, folder)
+    noted = {}
+    if delay > 0.0:
+        task, stream = with_delay(task, stream, delay)
+        noted = {"detected_delay": delay}
     config = as_stored(
         {
             "method": args.method,
@@ -201,6 +253,7 @@ def plan_run(args: argparse.Namespace) -> Plan:
             "stream": asdict(stream),
             "conditions": [list(c) for c in conditions],
             "stages": stages,
+            **noted,
         }
     )
     if args.resume:
@@ -268,10 +321,12 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
         summary = learner.run(plan.conditions, done)
     finally:
         bar.close()
+    detected = {k: v for k, v in plan.config.items() if k == "detected_delay"}
     folder.write_summary(
         {
             "method": plan.method,
             "seed": plan.config["seed"],
+            **detected,
             "conditions": [e.to_json() for e in summary],
         }
     )

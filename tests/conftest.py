@@ -44,10 +44,11 @@ SMALL = [
 CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
 # module -> the worker group its tests run in: those sharing the CI stream, and those on Ray
 GROUPS = {"test_kill_resume.py": "ci_stream", "test_stream.py": "ci_stream", "test_ray.py": "ray"}
-# the longest tests outside the groups, longest first (CPU seconds when measured: 15, 8, 7, 7,
-# 7, 6, 5, 4, 4, 3 and less)
+# the longest tests outside the groups, longest first (CPU seconds when measured: 15, the
+# late-command stream's, 8, 7, 7, 7, 6, 5, 4, 4, 3 and less)
 LONGEST = (
     "test_learning.py::test_xarm_policy_keeps_both_positions_of_a_small_stream",
+    "test_latency.py::test_a_stream_with_late_commands_finds_the_delay_and_learns",
     "test_transfer.py::test_a_condition_the_policy_already_does_costs_fewer_rollouts",
     "test_wheel.py::test_the_installed_wheel_makes_and_resets_the_env",
     "test_urdf_fuzz.py::test_mutations_are_refused_or_survive_a_rollout",
