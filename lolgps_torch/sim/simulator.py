@@ -20,6 +20,7 @@ because joint damping would be unstable).
 
 from __future__ import annotations
 
+import importlib.metadata
 import importlib.util
 import math
 from abc import ABC, abstractmethod
@@ -347,9 +348,14 @@ class Display(Protocol):
 
 def require(simulator: Simulator) -> None:
     """Raise :class:`LolgpsError` if ``simulator``'s engine is not installed (PyBullet always
-    is; MuJoCo is the ``mujoco`` extra)."""
-    if simulator == "mujoco" and importlib.util.find_spec("mujoco") is None:
+    is; MuJoCo is the ``mujoco`` extra, version 3)."""
+    if simulator != "mujoco":
+        return
+    if importlib.util.find_spec("mujoco") is None:
         raise LolgpsError(f"--sim mujoco needs MuJoCo, which is not installed: {MUJOCO_INSTALL}")
+    version = importlib.metadata.version("mujoco")
+    if not version.startswith("3."):
+        raise LolgpsError(f"--sim mujoco needs MuJoCo 3, found {version}: {MUJOCO_INSTALL}")
 
 
 def check_plant(simulator: Simulator, plant: PlantConfig) -> None:
