@@ -348,14 +348,14 @@ class Display(Protocol):
 
 def require(simulator: Simulator) -> None:
     """Raise :class:`LolgpsError` if ``simulator``'s engine is not installed (PyBullet always
-    is; MuJoCo is the ``mujoco`` extra, version 3)."""
+    is; MuJoCo is the ``mujoco`` extra, a 3.3 release: later ones renamed enums it uses)."""
     if simulator != "mujoco":
         return
     if importlib.util.find_spec("mujoco") is None:
         raise LolgpsError(f"--sim mujoco needs MuJoCo, which is not installed: {MUJOCO_INSTALL}")
     version = importlib.metadata.version("mujoco")
-    if not version.startswith("3."):
-        raise LolgpsError(f"--sim mujoco needs MuJoCo 3, found {version}: {MUJOCO_INSTALL}")
+    if not version.startswith("3.3."):
+        raise LolgpsError(f"--sim mujoco needs MuJoCo 3.3, found {version}: {MUJOCO_INSTALL}")
 
 
 def check_plant(simulator: Simulator, plant: PlantConfig) -> None:
