@@ -15,6 +15,7 @@ from lolgps_torch.data.run_folder import (
     RunFolder,
     atomic_write,
     config_differences,
+    evaluated_runs,
     portable_urdf,
     task_json,
 )
@@ -214,3 +215,14 @@ def test_a_policy_saved_before_output_scaling_loads_as_the_same_policy() -> None
     x = torch.randn(4, 3, dtype=F64)
     assert torch.equal(loaded(x), policy(x))
     assert torch.equal(loaded.u_scale, torch.ones(2, dtype=F64))
+
+
+def test_evaluated_runs_are_a_run_or_a_sweeps_runs(tmp_path: Path) -> None:
+    for name in ("b", "a", "unevaluated"):
+        (tmp_path / name).mkdir()
+    for name in ("a", "b"):
+        (tmp_path / name / "eval.json").write_text("{}")
+    assert evaluated_runs(tmp_path) == [tmp_path / "a", tmp_path / "b"]
+    assert evaluated_runs(tmp_path / "a") == [tmp_path / "a"]
+    with pytest.raises(LolgpsError, match="no evaluated run"):
+        evaluated_runs(tmp_path / "unevaluated")

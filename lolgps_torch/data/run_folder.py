@@ -300,3 +300,15 @@ class RunFolder:
                 fh.write(json.dumps(record) + "\n")
         except OSError as error:
             raise write_error(self.metrics_path, error) from error
+
+
+def evaluated_runs(folder: str | Path) -> list[Path]:
+    """``folder`` if it is an evaluated run (it holds an ``eval.json``), else its evaluated
+    run subfolders (a sweep's); none is a :class:`LolgpsError`."""
+    folder = Path(folder)
+    if (folder / EVAL_FILE).is_file():
+        return [folder]
+    found = sorted(p.parent for p in folder.glob(f"*/{EVAL_FILE}"))
+    if not found:
+        raise LolgpsError(f"{folder}: no evaluated run ({EVAL_FILE}) in it")
+    return found

@@ -22,8 +22,11 @@ import math
 import shutil
 from pathlib import Path
 
+import torch
+
 from lolgps_torch.cli import run
 from lolgps_torch.data.checkpoint import load_policy, save_policy
+from lolgps_torch.data.run_folder import EVAL_FILE, REPLAY_FILE, evaluated_runs
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import evaluate_run
 from lolgps_torch.policy.guard import Guard
@@ -51,16 +54,6 @@ def parse_args() -> argparse.Namespace:
     return args
 
 
-def evaluated_runs(folder: Path) -> list[Path]:
-    """``folder`` if it is an evaluated run, else its evaluated run subfolders."""
-    if (folder / "eval.json").is_file():
-        return [folder]
-    found = sorted(p.parent for p in folder.glob("*/eval.json"))
-    if not found:
-        raise LolgpsError(f"{folder}: no evaluated run (eval.json) in it")
-    return found
-
-
 def reguarded(guard: Guard, trained: dict[str, float], args: argparse.Namespace) -> Guard:
     """``guard`` with the margins ``args`` asks for, its bounds rescaled from the ``trained``
     margins (``guard_speed``, ``guard_torque`` of the run's policy config)."""
@@ -68,7 +61,7 @@ def reguarded(guard: Guard, trained: dict[str, float], args: argparse.Namespace)
         return Guard.off(guard.torque.shape[0], guard.torque.device)
     speed = guard.speed * (args.speed / trained["guard_speed"]) if args.speed else guard.speed
     if args.no_torque:
-        torque = guard.torque * math.inf
+        torque = torch.full_like(guard.torque, math.inf)
     elif args.torque:
         if trained["guard_torque"] is None:
             raise LolgpsError("--torque: the runs were trained without a torque bound")
@@ -84,9 +77,7 @@ def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None
     if not trained.get("guard", False):
         raise LolgpsError(f"{source}: its policies were trained without a guard")
     shutil.rmtree(target, ignore_errors=True)
-    shutil.copytree(
-        source, target, ignore=shutil.ignore_patterns("replay.h5", "eval.json", "*.png")
-    )
+    shutil.copytree(source, target, ignore=shutil.ignore_patterns(REPLAY_FILE, EVAL_FILE, "*.png"))
     for checkpoint in sorted((target / "checkpoints").iterdir()):
         policy = load_policy(checkpoint)
         policy.set_guard(reguarded(policy.guard, trained, args))
@@ -95,7 +86,7 @@ def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None
 
 def main() -> None:
     args = parse_args()
-    sources = [r for folder in args.folders for r in evaluated_runs(Path(folder))]
+    sources = [r for folder in args.folders for r in evaluated_runs(folder)]
     out = Path(args.out)
     for source in sources:
         target = out / source.name

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from lolgps_torch.cli import run
+from lolgps_torch.data.run_folder import evaluated_runs
 from lolgps_torch.errors import LolgpsError
 
 
@@ -57,16 +58,6 @@ def parse_args() -> argparse.Namespace:
     if args.label is not None and len(args.label) != len(args.folders):
         raise LolgpsError(f"--label needs {len(args.folders)} names, got {len(args.label)}")
     return args
-
-
-def runs_in(folder: Path) -> list[Path]:
-    """``folder`` if it is an evaluated run, else its evaluated run subfolders."""
-    if (folder / "eval.json").exists():
-        return [folder]
-    found = sorted(p.parent for p in folder.glob("*/eval.json"))
-    if not found:
-        raise LolgpsError(f"{folder}: no evaluated run (eval.json) in it")
-    return found
 
 
 def seed_row(folder: Path, stage: str) -> SeedRow:
@@ -162,7 +153,7 @@ def main() -> None:
     labels = args.label or [Path(f).name for f in args.folders]
     groups: dict[tuple[str, str], list[SeedRow]] = defaultdict(list)
     for folder, label in zip(args.folders, labels, strict=True):
-        for path in runs_in(Path(folder)):
+        for path in evaluated_runs(Path(folder)):
             row = seed_row(path, args.stage)
             groups[(row.arm, label)].append(row)
     ordered = {key: sorted(groups[key], key=lambda r: r.seed) for key in sorted(groups)}
