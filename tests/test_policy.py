@@ -444,3 +444,22 @@ def test_adam_step_is_adam_written_out_and_the_rate_follows_its_cosine() -> None
     assert cosine_rate(config, 0) == pytest.approx(0.2)
     assert cosine_rate(config, 50) == pytest.approx(0.5 * (0.2 + 0.01))
     assert cosine_rate(config, 100) == pytest.approx(0.01)
+
+
+def test_net_output_is_the_modules_own_bit_for_bit() -> None:
+    """The net applied as functions of its weights equals calling its modules, on one row
+    (a control step) and on a batch, with and without the gain head."""
+    gen = torch.Generator().manual_seed(3)
+    for feedback in (True, False):
+        policy = GaussianPolicy(9, 3, PolicyConfig(feedback=feedback, seed=4))
+        with torch.no_grad():
+            policy.gain.weight.normal_(generator=gen)
+            policy.gain.bias.normal_(generator=gen)
+        for rows in (1, 64):
+            z = torch.randn(rows, 9, dtype=F64, generator=gen)
+            h = policy.net[:-1](z)
+            gain = policy.gain(h).unflatten(-1, (3, 9))
+            expected = policy.net(z)
+            if feedback:
+                expected = policy.net[-1](h) + (gain * z.unsqueeze(-2)).sum(-1)
+            assert torch.equal(policy.unscaled(z), expected)

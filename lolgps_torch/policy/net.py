@@ -12,6 +12,7 @@ from typing import Any, Literal, get_args
 
 import torch
 from torch import Tensor
+from torch.nn import functional
 
 from lolgps_torch.errors import LolgpsError, check_fields
 from lolgps_torch.policy.guard import Guard
@@ -109,6 +110,20 @@ def _mlp(
     return torch.nn.Sequential(*layers[:-1])
 
 
+def _forward(layers: list[torch.nn.Module], h: Tensor) -> Tensor:
+    """``layers`` applied in turn, linear layers and ReLUs as functions of their weights: the
+    same arithmetic as calling them, without the module call's bookkeeping, which took 60 % of
+    a one-row evaluation (every control step of a policy rollout)."""
+    for layer in layers:
+        if isinstance(layer, torch.nn.Linear):
+            h = functional.linear(h, layer.weight, layer.bias)
+        elif isinstance(layer, torch.nn.ReLU):
+            h = h.relu()
+        else:
+            h = layer(h)
+    return h
+
+
 class GaussianPolicy(torch.nn.Module):
     """``pi_theta(u | x) = N(mu_theta(x), diag(sigma^2))`` with
     ``mu_theta(x) = u_mean + u_scale * MLP((x - x_mean) / x_std)``.
@@ -171,11 +186,13 @@ class GaussianPolicy(torch.nn.Module):
 
     def unscaled(self, z: Tensor) -> Tensor:
         """The net's output at whitened states ``z``, before the output scaling."""
+        layers = list(self.net)
         if not self.config.feedback:
-            return self.net(z)
-        h = self.net[:-1](z)
-        gain = self.gain(h).unflatten(-1, (self.dU, self.dX))
-        return self.net[-1](h) + (gain * z.unsqueeze(-2)).sum(-1)
+            return _forward(layers, z)
+        h = _forward(layers[:-1], z)
+        gain = functional.linear(h, self.gain.weight, self.gain.bias)
+        out = _forward(layers[-1:], h)
+        return out + (gain.unflatten(-1, (self.dU, self.dX)) * z.unsqueeze(-2)).sum(-1)
 
     @property
     def guard(self) -> Guard:
