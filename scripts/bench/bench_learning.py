@@ -18,6 +18,10 @@
             the task's dX and dU), with the replay's rows and MB, and the time per S-step as a
             ratio to that at 8 conditions and to a condition's sampling (12 iterations of 5
             rollouts, the sampling of one iteration measured here).
+- acting:   CPU time of one evaluation of the policy's mean on one row (a control step of a
+            policy rollout) as ``GaussianPolicy.unscaled`` runs it (its layers applied as
+            functions of their weights) against calling its modules, alternated, on ``--steps``
+            states each; and whether the two give the same bits.
 The figures are CPU times (``time.process_time``, one torch thread, PyBullet in-process);
 medians over the repeats. The fit and C-step against the sampling of the same iteration are
 ``scripts/bench/bench.py --only algorithm``.
@@ -232,10 +236,43 @@ def bench_forms(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
     }
 
 
+def bench_acting(task: PegTask, repeats: int, steps: int) -> dict[str, float]:
+    """One-row evaluation of the policy, as applied against its modules called (module
+    docstring)."""
+    dX, dU = task.layout.dX, task.layout.dU
+    policy = GaussianPolicy(dX, dU)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        policy.gain.weight.normal_(generator=gen)
+    states = torch.randn(steps, 1, dX, dtype=F64, generator=gen)
+
+    def called(z: torch.Tensor) -> torch.Tensor:
+        h = policy.net[:-1](z)
+        gain = policy.gain(h).unflatten(-1, (dU, dX))
+        return policy.net[-1](h) + (gain * z.unsqueeze(-2)).sum(-1)
+
+    def each(evaluate: Callable[[torch.Tensor], torch.Tensor]) -> float:
+        start = time.process_time()
+        for z in states:
+            evaluate(z)
+        return (time.process_time() - start) / steps
+
+    with torch.no_grad():
+        same = all(torch.equal(policy.unscaled(z), called(z)) for z in states[:100])
+        times = [(each(called), each(policy.unscaled)) for _ in range(repeats)]
+    return {
+        "modules_called_us": 1e6 * statistics.median(c for c, _ in times),
+        "as_applied_us": 1e6 * statistics.median(a for _, a in times),
+        "applied / called (paired median)": statistics.median(a / c for c, a in times),
+        "same bits": float(same),
+    }
+
+
 BENCHES = {
     "sstep": bench_sstep,
     "forms": bench_forms,
     "replay": bench_replay,
+    "acting": bench_acting,
 }
 
 
