@@ -21,9 +21,11 @@ from typing import Any, Literal
 import torch
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.lolgps.local import LocalConfig
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.latency import DelayConfig
 from lolgps_torch.sim.plant import PlantConfig
-from lolgps_torch.task import TaskConfig
+from lolgps_torch.task import TaskConfig, measure_delay
 
 Position = tuple[float, float]
 
@@ -216,6 +218,47 @@ def plant_config(args: argparse.Namespace, saved: PlantConfig) -> PlantConfig:
     """The run's plant ``saved`` with the plant flags given (:func:`add_plant_arguments`)."""
     plant: PlantConfig = PLANT_FLAGS.build(args, saved)
     return plant
+
+
+def add_delay_argument(parser: argparse.ArgumentParser) -> None:
+    """``--detect-delay``/``--no-detect-delay``: estimate the arm's command delay first."""
+    parser.add_argument(
+        "--detect-delay",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="estimate the arm's command delay from excitation rollouts before learning and "
+        "allow for it, unless --known-delay is given (default: on)",
+    )
+
+
+def detect_delay(task: TaskConfig, enabled: bool) -> float:
+    """The arm's command delay (s) estimated from excitation rollouts at the start pose
+    (:func:`~lolgps_torch.task.measure_delay`), said in one line when not zero; 0 when not
+    ``enabled`` or when the task already allows for a known delay."""
+    if not enabled or task.world.known_delay > 0.0:
+        return 0.0
+    settings = DelayConfig()
+    estimate = measure_delay(task, settings)
+    if estimate.steps:
+        print(
+            f"the arm's commands act {estimate.seconds * 1000:.0f} ms late (estimated from "
+            f"{settings.rollouts} excitation rollouts): the learner allows for it "
+            "(--known-delay; --no-detect-delay to learn without)"
+        )
+    return estimate.seconds
+
+
+def allow_for_delay(
+    task: TaskConfig, local: LocalConfig, seconds: float
+) -> tuple[TaskConfig, LocalConfig]:
+    """The task and local learner allowing for a command delay of ``seconds``: the known delay
+    (the state carries the last actions, the model acts on each command late), and from half a
+    control step on the hold as the first controller (``--model-plans 0``: a controller
+    planned on the model shakes in contact 40 or 50 ms late, docs/RESULTS.md section 8)."""
+    task = dataclasses.replace(task, world=dataclasses.replace(task.world, known_delay=seconds))
+    if seconds >= task.world.dt / 2:
+        local = dataclasses.replace(local, model_plans=0)
+    return task, local
 
 
 WORKERS_VARIABLE = "LOLGPS_WORKERS"

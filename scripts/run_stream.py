@@ -33,9 +33,12 @@ import torch
 from lolgps_torch.cli import (
     ConfigFlags,
     Position,
+    add_delay_argument,
     add_task_arguments,
     add_workers_argument,
+    allow_for_delay,
     check_device,
+    detect_delay,
     read_offsets,
     run,
     scale_factor,
@@ -56,8 +59,7 @@ from lolgps_torch.evaluation.square import SquareConfig, square_stream
 from lolgps_torch.lolgps import METHODS, StreamConfig, make_learner, method_config
 from lolgps_torch.progress import Bar
 from lolgps_torch.robot.placement import pinned
-from lolgps_torch.sim.latency import DelayConfig
-from lolgps_torch.task import PegTask, TaskConfig, fit_scale, measure_delay, scaled
+from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled
 
 STREAM_FLAGS = ConfigFlags(
     StreamConfig(),
@@ -129,13 +131,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--resume", action="store_true", help="continue an interrupted run in --out"
     )
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
-    parser.add_argument(
-        "--detect-delay",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="estimate the arm's command delay from excitation rollouts before the stream and "
-        "allow for it, unless --known-delay is given (default: on)",
-    )
+    add_delay_argument(parser)
     add_workers_argument(parser)
     return parser.parse_args(argv)
 
@@ -176,37 +172,12 @@ def check_folder(folder: RunFolder, config: dict[str, Any], resume: bool) -> Non
     folder.check_writable()
 
 
-def with_delay(
-    task: TaskConfig, stream: StreamConfig, seconds: float
-) -> tuple[TaskConfig, StreamConfig]:
-    """The task and stream allowing for a command delay of ``seconds``: the known delay (the
-    state carries the last actions, the model acts on each command late), and from half a
-    control step on the hold as the first controller (``--model-plans 0``: a controller
-    planned on the model shakes in contact 40 or 50 ms late, docs/RESULTS.md section 8)."""
-    task = replace(task, world=replace(task.world, known_delay=seconds))
-    if seconds >= task.world.dt / 2:
-        stream = replace(stream, local=replace(stream.local, model_plans=0))
-    return task, stream
-
-
 def detected_delay(args: argparse.Namespace, task: TaskConfig, folder: RunFolder) -> float:
     """The command delay (s) the run allows for beyond the flags: on --resume the one its
-    folder records; else, unless --known-delay is given or --no-detect-delay, the one
-    estimated from excitation rollouts (:func:`~lolgps_torch.task.measure_delay`), said in
-    one line when not zero."""
+    folder records, else the one :func:`~lolgps_torch.cli.detect_delay` estimates."""
     if args.resume:
         return float(folder.read_config().get("detected_delay", 0.0))
-    if not args.detect_delay or task.world.known_delay > 0.0:
-        return 0.0
-    settings = DelayConfig()
-    estimate = measure_delay(task, settings)
-    if estimate.steps:
-        print(
-            f"the arm's commands act {estimate.seconds * 1000:.0f} ms late (estimated from "
-            f"{settings.rollouts} excitation rollouts): the learner allows for it "
-            "(--known-delay; --no-detect-delay to learn without)"
-        )
-    return estimate.seconds
+    return detect_delay(task, args.detect_delay)
 
 
 def plan_run(args: argparse.Namespace) -> Plan:
@@ -243,7 +214,8 @@ def plan_run(args: argparse.Namespace) -> Plan:
     delay = detected_delay(args, task, folder)
     noted = {}
     if delay > 0.0:
-        task, stream = with_delay(task, stream, delay)
+        task, local = allow_for_delay(task, stream.local, delay)
+        stream = replace(stream, local=local)
         noted = {"detected_delay": delay}
     config = as_stored(
         {

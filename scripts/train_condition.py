@@ -6,7 +6,9 @@ Each iteration samples N rollouts, fits the dynamics and takes the KL-constraine
 Per iteration it prints and appends to OUT/metrics.jsonl: mean cost, mean and best final
 tip distance, success rate, epsilon, eta and the time spent sampling, fitting and solving.
 OUT also gets config.json and arm.urdf (written once every flag, the folder and the hole's
-reachability are checked) and, at the end, summary.json.
+reachability are checked) and, at the end, summary.json. As in ``run_stream.py``, the arm's
+command delay is first estimated and allowed for (``--no-detect-delay``; config.json's
+``detected_delay``).
 """
 
 from __future__ import annotations
@@ -18,9 +20,12 @@ import torch
 
 from lolgps_torch.cli import (
     ConfigFlags,
+    add_delay_argument,
     add_task_arguments,
     add_workers_argument,
+    allow_for_delay,
     check_device,
+    detect_delay,
     run,
     task_config,
     workers,
@@ -66,6 +71,7 @@ def parse_args() -> argparse.Namespace:
         help="stop once at least 3 of 5 samples (60%%) succeed",
     )
     parser.add_argument("--device", default="cpu")
+    add_delay_argument(parser)
     add_workers_argument(parser)
     args = parser.parse_args()
     if args.iterations < 1:
@@ -106,10 +112,14 @@ def main() -> None:
     if folder.has_config():
         raise LolgpsError(f"{folder.path} already holds a run; choose another --out")
     folder.check_writable()
+    delay = detect_delay(tcfg, args.detect_delay)
+    if delay > 0.0:
+        tcfg, config = allow_for_delay(tcfg, config, delay)
     torch.manual_seed(args.seed)
     task = PegTask(tcfg, config.samples, device=str(device), workers=workers(args))
     try:  # the placement has checked that the hole is reachable
         settings = {"hole": list(offset), "seed": args.seed, "iterations": args.iterations}
+        settings |= {"detected_delay": delay} if delay > 0.0 else {}
         placed = replace(tcfg, placement=pinned(tcfg.placement, task.geometry))
         record = {**settings, "task": task_json(placed, urdf_text), "local": asdict(config)}
         folder.start(as_stored(record), urdf_text)

@@ -84,3 +84,18 @@ def test_a_stream_with_late_commands_finds_the_delay_and_learns(tmp_path: Path) 
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     distances = [r["mean_distance"] for r in records if "iteration" in r]
     assert distances[-1] < distances[0] / 3
+
+
+def test_one_condition_alone_finds_the_delay_too(tmp_path: Path) -> None:
+    """``train_condition.py`` detects and allows for a delay as the stream does: the known
+    delay and the hold as the first controller in its config.json."""
+    out, log = tmp_path / "cond", tmp_path / "cond.log"
+    command = ["python", str(ROOT / "scripts" / "train_condition.py"), "--urdf", str(ROOT / KUKA),
+               "--hole", "0", "0", "--iterations", "1", "--workers", "1",
+               "--action-delay", "0.05", "--out", str(out)]  # fmt: skip
+    assert finish_script(start_script(command, log), log) == 0, log.read_text()[-2000:]
+    assert "commands act 50 ms late" in log.read_text()
+    config = json.loads((out / "config.json").read_text())
+    assert config["detected_delay"] == pytest.approx(0.05)
+    assert config["task"]["world"]["known_delay"] == pytest.approx(0.05)
+    assert config["local"]["model_plans"] == 0
