@@ -97,9 +97,9 @@ def link_damping(
         ``[..., B, 3]``. :param R: the inertia frames ``[..., B, 3, 3]``. :param mass:
         ``-k m [B, 1]``. :param inertia: ``-k`` times the principal inertias ``[B, 3]``.
 
-    Elementwise products and sums over axes of 3 only, no matrix product: each body's wrench
-    has the same bits whatever the leading axes hold (a batch of worlds stepped together, or
-    one world).
+    Elementwise products and sums written out term by term, no matrix product or reduction:
+    each body's wrench has the same bits whatever the leading axes hold (a batch of worlds
+    stepped together, or one world).
     """
     omega = cvel[..., :3]
     lever = com - root_com
@@ -109,11 +109,21 @@ def link_damping(
         omega[..., a] * lever[..., b] - omega[..., b] * lever[..., a]
     )
     moving[..., 1, :] = omega
-    factor = 1.0 + np.sqrt(np.square(moving).sum(-1))  # [..., B, 2]
-    body_omega = inertia * (R * omega[..., :, None]).sum(-2)  # -k I_body R^T w
-    moving[..., 1, :] = (R * body_omega[..., None, :]).sum(-1)  # -k R I_body R^T w
+    square = np.square(moving)
+    factor = 1.0 + np.sqrt(square[..., 0] + square[..., 1] + square[..., 2])  # [..., B, 2]
+    turned = R * omega[..., :, None]
+    body_omega = inertia * (turned[..., 0, :] + turned[..., 1, :] + turned[..., 2, :])
+    turned = R * body_omega[..., None, :]  # then -k R I_body R^T w
+    moving[..., 1, :] = turned[..., 0] + turned[..., 1] + turned[..., 2]
     factor[..., 0] *= mass[:, 0]
     return factor[..., None] * moving
+
+
+def _index(ids: np.ndarray) -> slice | np.ndarray:
+    """``ids`` as a slice where they are consecutive (a view, not a copy, when indexing)."""
+    if len(ids) and np.array_equal(ids, np.arange(ids[0], ids[0] + len(ids))):
+        return slice(int(ids[0]), int(ids[0]) + len(ids))
+    return ids
 
 
 class MujocoWorld(World):
@@ -143,6 +153,7 @@ class MujocoWorld(World):
         joints = [m.joint(name).id for name in arm.joint_names]
         self.qpos_ids = m.jnt_qposadr[joints]
         self.dof_ids = m.jnt_dofadr[joints]
+        self._q, self._dofs = _index(self.qpos_ids), _index(self.dof_ids)
         self.point_body = m.body(arm.point_link).id
         self.hole_mocap = m.body_mocapid[m.body(HOLE).id]
         self._stabilise_damping(joints)
@@ -221,10 +232,9 @@ class MujocoWorld(World):
     def _joint_state(self) -> tuple[np.ndarray, np.ndarray]:
         """The joints now; a physics step since the last reset whose accelerations were not
         finite (MuJoCo counts it, and resets the data) is a :class:`NumericalError`."""
-        d = self.data
-        if d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0:
+        if self._badqacc.number > 0:
             raise NumericalError("the simulation blew up: MuJoCo's accelerations are not finite")
-        return d.qpos[self.qpos_ids].copy(), d.qvel[self.dof_ids].copy()
+        return self._qpos[self._q].copy(), self._qvel[self._dofs].copy()
 
     def _point_pose(self) -> tuple[np.ndarray, np.ndarray]:
         mujoco.mj_kinematics(self.model, self.data)
@@ -260,6 +270,8 @@ class MujocoWorld(World):
         self._R = d.ximat[arm].reshape(-1, 3, 3)
         self._wrench = d.xfrc_applied[arm].reshape(-1, 2, 3)
         self._qvel, self._qfrc = d.qvel, d.qfrc_applied
+        self._qpos = d.qpos
+        self._badqacc = d.warning[mujoco.mjtWarning.mjWARN_BADQACC]
 
     def gravity_compensation(self) -> np.ndarray:
         """``g(q) [dof]`` at the current joint angles: MuJoCo's inverse dynamics at rest."""
@@ -292,14 +304,16 @@ def _physics_steps(worlds: Sequence[MujocoWorld], tau: np.ndarray) -> None:
         mujoco.mj_step1(world.model, world.data)  # positions and velocities
     first = worlds[0]
     wrench = link_damping(
-        np.stack([world._cvel for world in worlds]),
-        np.stack([world._com for world in worlds]),
-        np.stack([world._root_com for world in worlds]),
-        np.stack([world._R for world in worlds]),
+        np.array([world._cvel for world in worlds]),
+        np.array([world._com for world in worlds]),
+        np.array([world._root_com for world in worlds]),
+        np.array([world._R for world in worlds]),
         first._mass,
         first._inertia,
     )
-    for world, row, torque in zip(worlds, wrench, tau, strict=True):
+    qvel = np.array([world._qvel[world._dofs] for world in worlds])
+    applied = tau - first.damping * qvel
+    for world, row, torque in zip(worlds, wrench, applied, strict=True):
         world._wrench[:] = row
-        world._qfrc[world.dof_ids] = torque - world.damping * world._qvel[world.dof_ids]
+        world._qfrc[world._dofs] = torque
         mujoco.mj_step2(world.model, world.data)

@@ -312,7 +312,9 @@ class World(ABC):
         if not np.all(np.isfinite(u)):
             raise NumericalError("non-finite action: the controller produced NaN or inf torques")
         g = self.gravity_compensation()
-        held = np.concatenate([self._queue, np.broadcast_to(u, (substeps, len(u)))])
+        held = np.empty((self.delay + substeps, len(u)))
+        held[: self.delay] = self._queue
+        held[self.delay :] = u
         self._queue = held[substeps:]
         # the commands as they act (within the effort limits): past commands beyond them
         # would grow without bound under a controller that feeds them back
