@@ -4,8 +4,10 @@ the one-line refusals."""
 
 from __future__ import annotations
 
+import cProfile
 import json
 import os
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -169,6 +171,33 @@ def test_rows_stepped_together_equal_each_row_alone_bit_for_bit() -> None:
     matmul = torch.einsum("tuv,ntv->ntu", K, x[:, :-1]) + k + act.shifted
     torch.testing.assert_close(u, matmul, rtol=0, atol=1e-12 * float(matmul.abs().max()))
     task.close()
+
+
+def test_stream_profile_counts_the_rollouts_and_steps_of_each_simulator(
+    tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    """``stream_profile.py --summarise`` reads profiles of 3 rollouts of 20 steps on each
+    simulator (stepped together in MuJoCo, one at a time in PyBullet): 3 resets, 60 commands,
+    and time in the physics steps and the linear-Gaussian actor."""
+    T, dU = 20, 7
+    for sim in ("pybullet", "mujoco"):
+        task = PegTask(TaskConfig(urdf=ARMS["kuka"], sim=sim, world=WorldConfig(T=T)), n_worlds=1)
+        K = torch.zeros(T, dU, task.layout.dX, dtype=torch.float64)
+        cov = torch.eye(dU, dtype=torch.float64).expand(T, dU, dU)
+        act = linear_gaussian_actor(LinearGaussian(K, torch.zeros(T, dU, dtype=torch.float64),
+                                                   cov), torch.zeros(3, T, dU, dtype=torch.float64))  # fmt: skip
+        profiler = cProfile.Profile(time.process_time)
+        profiler.runcall(rollout_rows, task.sampler, act, [(0.0, 0.0)] * 3, range(3))
+        profiler.dump_stats(tmp_path / f"{sim}.prof")
+        task.close()
+    result = run_script("scripts/research/stream_profile.py", "--out", str(tmp_path),
+                        "--summarise")  # fmt: skip
+    assert result.code == 0, result.err
+    rows = {line[:28].strip(): line[28:].split() for line in result.out.splitlines()[1:]}
+    assert [float(v) for v in rows["rollouts"][:2]] == [3, 3]
+    assert [float(v) for v in rows["control steps"][:2]] == [3 * T, 3 * T]
+    for part in ("physics steps", "linear-Gaussian actor"):
+        assert all(float(v) > 0 for v in rows[part][:2])
 
 
 def test_the_table_stops_the_peg_as_in_pybullet() -> None:

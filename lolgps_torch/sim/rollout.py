@@ -48,7 +48,7 @@ class Rowwise(Protocol):
 
 def matmul_rows(x: Tensor, A: Tensor) -> Tensor:
     """``x @ A^T`` for ``x: [n, k]``, ``A: [m, k]``, as elementwise products summed over the
-    last axis: each row's bits are the same whatever the other rows (tests/test_rollout.py)."""
+    last axis: each row's bits are the same whatever the other rows (tests/test_guard.py)."""
     return (A * x.unsqueeze(-2)).sum(-1)
 
 
