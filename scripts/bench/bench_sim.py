@@ -13,13 +13,26 @@ stream's 8 training positions.  The two simulators' batches alternate, so drifti
 both alike; medians over ``repeats``, and the ratio ``mujoco / pybullet`` per rollout, of wall
 time and of this process's CPU time (``time.process_time``, which other processes on a shared
 machine disturb less).  On a shared machine compare the ratios, not the seconds.
+
+    python scripts/bench/bench_sim.py --streams SEED ... --out DIR [--urdf URDF] [-- FLAGS]
+
+runs instead the default stream (``run_stream.py --urdf URDF --seed SEED``, with FLAGS) on
+each simulator, one run at a time, the two simulators' order alternating from seed to seed,
+into ``DIR/<sim>-seed<SEED>``, and prints per run its wall time, its CPU time (its processes'
+and their workers'), the positions its final policy reaches, its rollouts (local and the
+policy's) and any failure, and per seed the MuJoCo / PyBullet ratio of wall and CPU time.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import resource
 import statistics
+import subprocess
+import sys
 import time
+from pathlib import Path
 from typing import get_args
 
 from lolgps_torch.cli import run
@@ -96,6 +109,39 @@ def _local_rollouts(tasks: dict[str, PegTask], samples: int, repeats: int) -> di
     return result | {f"{name}_success": statistics.mean(successes[name]) for name in names}
 
 
+def bench_streams(urdf: str, seeds: list[int], out: Path, flags: list[str]) -> None:
+    """Run and print the default stream on each simulator per seed (module docstring)."""
+    script = Path(__file__).resolve().parents[1] / "run_stream.py"
+    names = list(get_args(Simulator))
+    for i, seed in enumerate(seeds):
+        measured: dict[str, tuple[float, float]] = {}
+        for name in names if i % 2 == 0 else names[::-1]:
+            folder = out / f"{name}-seed{seed}"
+            command = [sys.executable, str(script), "--urdf", urdf, "--sim", name, "--seed",
+                       str(seed), "--out", str(folder), *flags]  # fmt: skip
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            t0 = time.perf_counter()
+            with open(out / f"{name}-seed{seed}.log", "w") as log:
+                code = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
+            wall = time.perf_counter() - t0
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
+            measured[name] = (wall, cpu)
+            if code != 0:
+                print(f"seed {seed} {name}: exit status {code}, see {folder}.log")
+                continue
+            entries = json.loads((folder / "summary.json").read_text())["conditions"]
+            reached = sum(bool(e["policy_success_end"]) for e in entries)
+            failures = [e["condition"] for e in entries if e["failure"]]
+            print(f"seed {seed} {name:>8}: {wall:7.1f} s wall, {cpu:7.1f} s CPU, "
+                  f"{reached}/{len(entries)} reached, {sum(e['rollouts'] for e in entries)} "
+                  f"rollouts, {sum(e['policy_rollouts'] for e in entries)} policy rollouts, "
+                  f"failures at {failures}", flush=True)  # fmt: skip
+        if len(measured) == 2:
+            (pw, pc), (mw, mc) = measured["pybullet"], measured["mujoco"]
+            print(f"seed {seed} mujoco / pybullet: wall {mw / pw:.2f}, CPU {mc / pc:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -103,9 +149,20 @@ def main() -> None:
     parser.add_argument("--urdf", default="robots/kuka_peg.urdf", help="the arm's URDF")
     parser.add_argument("--samples", type=int, default=5, help="rollouts a batch (default 5)")
     parser.add_argument("--repeats", type=int, default=5, help="timed batches (default 5)")
-    args = parser.parse_args()
+    parser.add_argument("--streams", type=int, nargs="+", metavar="SEED",
+                        help="run the default stream on each simulator at these seeds")  # fmt: skip
+    parser.add_argument("--out", help="the streams' folder (with --streams)")
+    args, flags = parser.parse_known_args()
     if args.samples < 1 or args.repeats < 1:
         raise LolgpsError("--samples and --repeats must be at least 1")
+    if args.streams:
+        if args.out is None:
+            raise LolgpsError("--streams needs --out")
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        bench_streams(args.urdf, args.streams, Path(args.out), [f for f in flags if f != "--"])
+        return
+    if flags:
+        raise LolgpsError(f"unrecognised arguments: {' '.join(flags)}")
     for name, value in bench_sim(args.urdf, args.samples, args.repeats).items():
         print(f"{name:>16}: {value:.4f}")
 
