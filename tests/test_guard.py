@@ -9,8 +9,9 @@ from pathlib import Path
 import torch
 
 from lolgps_torch.data.checkpoint import load_policy, save_policy
-from lolgps_torch.policy import GaussianPolicy, policy_actor
+from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
 from lolgps_torch.policy.guard import Guard, fit_guard, guarded
+from lolgps_torch.sim.rollout import Rowwise
 from lolgps_torch.state import StateLayout
 
 F64 = torch.float64
@@ -82,3 +83,33 @@ def test_the_actor_latches_per_rollout_and_resets_at_the_start(tmp_path: Path) -
     loaded = load_policy(tmp_path)
     for a, b in zip(loaded.guard, policy.guard, strict=True):
         assert torch.equal(a, b)
+
+
+def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
+    """The policy's row-wise form (a feedback head, random weights, the brake tripping on some
+    rows, noise): each row's action is the same bits in batches of 1 to 12 rows at any place,
+    and equals the policy's own (matrix-product) action to rounding."""
+    dX, dU, n = 27, 7, 12
+    policy = GaussianPolicy(dX, dU, PolicyConfig(hidden_sizes=(42, 42), feedback=True))
+    g = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        policy.gain.weight.normal_(0.0, 0.1, generator=g)
+        policy.x_mean.normal_(generator=g)
+        policy.x_std.uniform_(0.5, 2.0, generator=g)
+    layout = StateLayout(dU)
+    brake = torch.randn(dU, dU, dtype=F64, generator=g)
+    policy.set_guard(Guard(torch.full((dU,), 50.0, dtype=F64), torch.full((dU,), 2.0, dtype=F64),
+                           brake))  # fmt: skip
+    x = torch.randn(n, dX, dtype=F64, generator=g)
+    x[::3, layout.qd] *= 4.0  # rows 0, 3, 6, 9 trip the brake
+    noise = torch.randn(n, 3, dU, dtype=F64, generator=g)
+    actor = policy_actor(policy, noise)
+    assert isinstance(actor, Rowwise)
+    alone = torch.cat([actor.rowwise()(2, x[i : i + 1], slice(i, i + 1)) for i in range(n)])
+    for size in (2, 5, 12):
+        for start in range(0, n - size + 1, 3):
+            rows = slice(start, start + size)
+            assert torch.equal(actor.rowwise()(2, x[rows], rows), alone[rows])
+    torch.testing.assert_close(actor(2, x, slice(0, n)), alone, rtol=0, atol=1e-12)
+    braked = (x[::3, layout.qd] @ brake.T).clamp(-50.0, 50.0)
+    torch.testing.assert_close(alone[::3], braked, rtol=0, atol=1e-12)  # the brake acts

@@ -4,8 +4,10 @@ the one-line refusals."""
 
 from __future__ import annotations
 
+import cProfile
 import json
 import os
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,10 +22,13 @@ from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim import simulator
 from lolgps_torch.sim.engines import build_world
+from lolgps_torch.sim.rollout import Rowwise, linear_gaussian_actor, rollout_rows
 from lolgps_torch.sim.simulator import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
+from lolgps_torch.types import LinearGaussian
 
 mujoco = pytest.importorskip("mujoco")
+from lolgps_torch.sim.mujoco_world import LINK_DAMPING, MujocoWorld, link_damping  # noqa: E402
 
 ARMS = {
     "kuka": str(ROOT / "robots" / "kuka_peg.urdf"),
@@ -96,6 +101,103 @@ def test_state_and_free_rollout_match_pybullet(arm: ArmSpec) -> None:
     assert first < 1e-3 * max(1.0, np.abs(pybullet[1, lay.qd]).max())
     assert np.abs(mujoco_run[:, :n] - pybullet[:, :n]).max() < 1e-3
     assert np.abs(mujoco_run[:, lay.points] - pybullet[:, lay.points]).max() < 1e-3
+
+
+def _old_link_damping(world: MujocoWorld) -> np.ndarray:
+    """Bullet's link damping written out body by body with numpy's cross and matrix products,
+    independently of :func:`link_damping`: wrenches ``[B, 2, 3]`` of the arm's bodies."""
+    m, d = world.model, world.data
+    arm = range(1, m.body("lolgps_hole").id)
+    root = d.subtree_com[m.body_rootid[1]]
+    k, out = LINK_DAMPING, []
+    for b in arm:
+        w, v0 = d.cvel[b, :3], d.cvel[b, 3:]
+        v = v0 + np.cross(w, d.xipos[b] - root)
+        R = d.ximat[b].reshape(3, 3)
+        Iw = R @ np.diag(m.body_inertia[b]) @ R.T @ w
+        mass = m.body_mass[b]
+        out.append([-k * (1 + np.linalg.norm(v)) * mass * v, -k * (1 + np.linalg.norm(w)) * Iw])
+    return np.array(out)
+
+
+def test_link_damping_matches_its_definition_body_by_body() -> None:
+    """In a moving arm, :func:`link_damping` (all bodies in a few numpy calls) gives each body
+    the wrench of Bullet's definition computed body by body, to rounding."""
+    task = PegTask(TaskConfig(urdf=ARMS["kuka"], sim="mujoco"), n_worlds=1)
+    world = task.sampler.worlds[0]
+    assert isinstance(world, MujocoWorld)
+    world.reset(np.asarray(task.geometry.q0))
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        world.step(rng.normal(0.0, 20.0, task.arm.dof))
+    mujoco.mj_step1(world.model, world.data)  # positions and velocities, as the step has them
+    expected = _old_link_damping(world)
+    got = link_damping(world._cvel, world._com, world._root_com, world._R, world._mass,
+                       world._inertia)  # fmt: skip
+    assert np.abs(expected).max() > 1e-3  # the arm moves
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    task.close()
+
+
+def test_rows_stepped_together_equal_each_row_alone_bit_for_bit() -> None:
+    """A batch of 5 rollouts at different holes under noisy linear-Gaussian controllers,
+    stepped together (the rows' actions in one call, the worlds' physics steps together),
+    gives each row the same bits as the row rolled out alone, and as any split of the rows
+    (the form worker processes share); the row-wise actions equal the matrix products' to
+    rounding."""
+    task = PegTask(TaskConfig(urdf=ARMS["kuka"], sim="mujoco"), n_worlds=1)
+    T, dX, dU = task.T, task.layout.dX, task.arm.dof
+    g = torch.Generator().manual_seed(0)
+    eye = torch.eye(dU, dtype=torch.float64)
+    K = 0.05 * torch.randn(T, dU, dX, dtype=torch.float64, generator=g)
+    K[..., :dU] -= 20.0 * eye  # hold the start pose, per unit of each joint's inertia
+    K[..., dU : 2 * dU] -= 6.0 * eye
+    K = task.effective_inertia()[:, None] * K
+    k = -K[..., :dU] @ task.q0
+    noise = torch.randn(5, T, dU, dtype=torch.float64, generator=g)
+    cov = torch.diag(task.effective_inertia() ** 2).expand(T, dU, dU)
+    act = linear_gaussian_actor(LinearGaussian(K, k, cov), noise)
+    offsets = [(0.02 * i - 0.04, 0.01 * i) for i in range(5)]
+    assert task.sampler.lockstep and isinstance(act, Rowwise)
+    together = rollout_rows(task.sampler, act, offsets, range(5), batch=3)
+    assert len(task.sampler.worlds) == 5  # grown for the batch
+    split = [rollout_rows(task.sampler, act, offsets, rows, 3) for rows in ([0], [1, 2], [3, 4])]
+    alone = [rollout_rows(task.sampler, act, offsets, [row], 3) for row in range(5)]
+    for parts in (split, alone):
+        for field, whole in zip(zip(*parts, strict=True), together, strict=True):
+            assert torch.equal(torch.cat(field), whole)
+    x, u, _ = together
+    assert x[:, -1, task.layout.qd].abs().max() > 0.01  # the arms moved
+    matmul = torch.einsum("tuv,ntv->ntu", K, x[:, :-1]) + k + act.shifted
+    torch.testing.assert_close(u, matmul, rtol=0, atol=1e-12 * float(matmul.abs().max()))
+    task.close()
+
+
+def test_stream_profile_counts_the_rollouts_and_steps_of_each_simulator(
+    tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    """``stream_profile.py --summarise`` reads profiles of 3 rollouts of 20 steps on each
+    simulator (stepped together in MuJoCo, one at a time in PyBullet): 3 resets, 60 commands,
+    and time in the physics steps and the linear-Gaussian actor."""
+    T, dU = 20, 7
+    for sim in ("pybullet", "mujoco"):
+        task = PegTask(TaskConfig(urdf=ARMS["kuka"], sim=sim, world=WorldConfig(T=T)), n_worlds=1)
+        K = torch.zeros(T, dU, task.layout.dX, dtype=torch.float64)
+        cov = torch.eye(dU, dtype=torch.float64).expand(T, dU, dU)
+        act = linear_gaussian_actor(LinearGaussian(K, torch.zeros(T, dU, dtype=torch.float64),
+                                                   cov), torch.zeros(3, T, dU, dtype=torch.float64))  # fmt: skip
+        profiler = cProfile.Profile(time.process_time)
+        profiler.runcall(rollout_rows, task.sampler, act, [(0.0, 0.0)] * 3, range(3))
+        profiler.dump_stats(tmp_path / f"{sim}.prof")
+        task.close()
+    result = run_script("scripts/research/stream_profile.py", "--out", str(tmp_path),
+                        "--summarise")  # fmt: skip
+    assert result.code == 0, result.err
+    rows = {line[:28].strip(): line[28:].split() for line in result.out.splitlines()[1:]}
+    assert [float(v) for v in rows["rollouts"][:2]] == [3, 3]
+    assert [float(v) for v in rows["control steps"][:2]] == [3 * T, 3 * T]
+    for part in ("physics steps", "linear-Gaussian actor"):
+        assert all(float(v) > 0 for v in rows[part][:2])
 
 
 def test_the_table_stops_the_peg_as_in_pybullet() -> None:

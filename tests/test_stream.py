@@ -344,3 +344,23 @@ def test_a_final_controller_that_misses_hands_d_g_to_the_newest_tried_one_that_s
         final,
         float("inf"),
     )
+
+
+def test_first_controller_rolls_out_a_runs_first_controller_in_each_simulator(
+    small_run: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    """The CI run's first controller at its second condition, one batch in each simulator:
+    planned on the model, it inserts the peg in both without a blow-up; a condition the run
+    does not have is a one-line error."""
+    script = "scripts/research/first_controller.py"
+    result = run_script(script, "--run", str(small_run / "run"), "--conditions", "1",
+                        "--batches", "1")  # fmt: skip
+    assert result.code == 0, result.err
+    lines = result.out.splitlines()
+    assert [line.split()[0] for line in lines] == ["pybullet", "mujoco"]
+    for line in lines:
+        assert "0/1 batches blew up" in line
+        assert float(line.rsplit("success ", 1)[1]) >= 0.5
+    missing = run_script(script, "--run", str(small_run / "run"), "--conditions", "9")
+    assert missing.code == 2
+    assert missing.err.startswith("error: conditions [9] not in the run's 2")

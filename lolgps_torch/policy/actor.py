@@ -2,15 +2,40 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 from torch import Tensor
 
 from lolgps_torch.policy.guard import guarded
 from lolgps_torch.policy.net import GaussianPolicy
-from lolgps_torch.sim.rollout import Actor
+from lolgps_torch.sim.rollout import Actor, matmul_rows
 from lolgps_torch.state import StateLayout
+
+
+def _rowwise_layers(layers: torch.nn.Module, h: Tensor) -> Tensor:
+    """``layers(h)`` with each linear layer's product as :func:`matmul_rows`."""
+    for layer in layers.children():
+        if isinstance(layer, torch.nn.Linear):
+            h = matmul_rows(h, layer.weight) + layer.bias
+        else:
+            h = layer(h)
+    return h
+
+
+def rowwise_mean(policy: GaussianPolicy, x: Tensor) -> Tensor:
+    """``policy(x)`` for ``x: [n, dX]`` with every matrix product as :func:`matmul_rows`, so
+    that each row's action has the same bits whatever the other rows (equal to ``policy(x)``
+    to rounding)."""
+    z = (x - policy.x_mean) / policy.x_std
+    if policy.config.feedback:
+        h = _rowwise_layers(policy.net[:-1], z)
+        gain = matmul_rows(h, policy.gain.weight) + policy.gain.bias
+        gain = gain.unflatten(-1, (policy.dU, policy.dX))
+        out = _rowwise_layers(policy.net[-1:], h) + (gain * z.unsqueeze(-2)).sum(-1)
+    else:
+        out = _rowwise_layers(policy.net, z)
+    return torch.addcmul(policy.u_mean, out, policy.u_scale)
 
 
 @dataclass
@@ -18,15 +43,22 @@ class PolicyActor:
     """``u_t = mu_theta(x_t) + shifted_t`` for the batch's rows ``rows`` (no noise when
     ``shifted`` is None), through the policy's guard (:func:`guarded`), which remembers per
     row whether its brake has tripped in this rollout (``tripped``, grown to the rows seen,
-    reset at t = 0); plain data, so that it can be sent to a worker process."""
+    reset at t = 0); plain data, so that it can be sent to a worker process. ``by_rows``: the
+    row-wise form (:meth:`rowwise`)."""
 
     policy: GaussianPolicy
     shifted: Tensor | None  # [N, T, dU]: chol(Sigma_pi) eps_t per rollout
     tripped: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
+    by_rows: bool = False
+
+    def rowwise(self) -> Actor:
+        """The same actor computing each row alone (:func:`rowwise_mean`, and the guard's
+        brake by :func:`matmul_rows`), for rows stepped together."""
+        return replace(self, tripped=torch.zeros(0, dtype=torch.bool), by_rows=True)
 
     def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
         with torch.no_grad():
-            u = self.policy(x)
+            u = rowwise_mean(self.policy, x) if self.by_rows else self.policy(x)
         u = u if self.shifted is None else u + self.shifted[rows, t]
         start, stop = rows.start or 0, rows.stop
         if stop > self.tripped.shape[0]:
@@ -35,7 +67,10 @@ class PolicyActor:
             self.tripped = grown
         before = self.tripped[start:stop] & (t > 0)
         qd = x[..., StateLayout(self.policy.dU).qd]
-        u, self.tripped[start:stop] = guarded(u, qd, self.policy.guard, before)
+        if self.by_rows:
+            u, self.tripped[start:stop] = guarded(u, qd, self.policy.guard, before, matmul_rows)
+        else:
+            u, self.tripped[start:stop] = guarded(u, qd, self.policy.guard, before)
         return u
 
 

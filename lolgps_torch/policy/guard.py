@@ -20,6 +20,7 @@ model), so the arm stops where it left the speeds its teachers used.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -73,10 +74,17 @@ def fit_guard(
     return Guard(torque, speed, -beta * torch.linalg.inv(B))
 
 
-def guarded(u: Tensor, qd: Tensor, guard: Guard, tripped: Tensor) -> tuple[Tensor, Tensor]:
+def guarded(
+    u: Tensor,
+    qd: Tensor,
+    guard: Guard,
+    tripped: Tensor,
+    product: Callable[[Tensor, Tensor], Tensor] = lambda x, A: x @ A.T,
+) -> tuple[Tensor, Tensor]:
     """Actions ``u: [n, dU]`` at joint speeds ``qd: [n, dU]`` through the guard, given which
     rollouts had ``tripped`` it before (``[n]`` bool); returns the actions and the new
-    ``tripped``."""
+    ``tripped``. ``product(x, A)`` is ``x @ A^T`` (a row-wise form of it for lockstep
+    rollouts)."""
     tripped = tripped | (qd.abs() > guard.speed).any(-1)
-    held = torch.where(tripped[:, None], qd @ guard.brake.T, u)
+    held = torch.where(tripped[:, None], product(qd, guard.brake), u)
     return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), tripped

@@ -81,17 +81,49 @@ def _quaternion(yaw: float, tilt: float) -> np.ndarray:
     return np.array([cy * ct, -sy * st, cy * st, sy * ct])
 
 
-def _levi_civita() -> np.ndarray:
-    """``E [9, 3]`` with ``E[3 j + k, i]`` the Levi-Civita symbol e_ijk, so that a row-wise
-    ``(a b^T).reshape(-1, 9) @ E`` is ``a x b`` (one matrix product: np.cross costs more on
-    a few rows)."""
-    E = np.zeros((9, 3))
-    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-        E[3 * j + k, i], E[3 * k + j, i] = 1.0, -1.0
-    return E
+CROSS = ([1, 2, 0], [2, 0, 1])  # a x b = a[CROSS[0]] b[CROSS[1]] - a[CROSS[1]] b[CROSS[0]]
 
 
-EPSILON = _levi_civita()
+def link_damping(
+    cvel: np.ndarray, com: np.ndarray, root_com: np.ndarray, R: np.ndarray,
+    mass: np.ndarray, inertia: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """Bullet's link damping as wrenches ``[..., B, 2, 3]`` (force, then moment) at B bodies'
+    centres of mass: on a body of mass m, COM velocity v, angular velocity w and world inertia
+    I, ``-k (1 + |v|) m v`` and ``-k (1 + |w|) I w`` (k = :data:`LINK_DAMPING`).
+
+    :param cvel: MuJoCo's ``cvel`` rows ``[..., B, 6]``: w, then the linear velocity of the
+        point at the root's subtree COM ``root_com [..., 1, 3]``. :param com: the COMs
+        ``[..., B, 3]``. :param R: the inertia frames ``[..., B, 3, 3]``. :param mass:
+        ``-k m [B, 1]``. :param inertia: ``-k`` times the principal inertias ``[B, 3]``.
+
+    Elementwise products and sums written out term by term, no matrix product or reduction:
+    each body's wrench has the same bits whatever the leading axes hold (a batch of worlds
+    stepped together, or one world).
+    """
+    omega = cvel[..., :3]
+    lever = com - root_com
+    a, b = CROSS
+    moving = np.empty((*cvel.shape[:-1], 2, 3))  # v, then w
+    moving[..., 0, :] = cvel[..., 3:] + (
+        omega[..., a] * lever[..., b] - omega[..., b] * lever[..., a]
+    )
+    moving[..., 1, :] = omega
+    square = np.square(moving)
+    factor = 1.0 + np.sqrt(square[..., 0] + square[..., 1] + square[..., 2])  # [..., B, 2]
+    turned = R * omega[..., :, None]
+    body_omega = inertia * (turned[..., 0, :] + turned[..., 1, :] + turned[..., 2, :])
+    turned = R * body_omega[..., None, :]  # then -k R I_body R^T w
+    moving[..., 1, :] = turned[..., 0] + turned[..., 1] + turned[..., 2]
+    factor[..., 0] *= mass[:, 0]
+    return factor[..., None] * moving
+
+
+def _index(ids: np.ndarray) -> slice | np.ndarray:
+    """``ids`` as a slice where they are consecutive (a view, not a copy, when indexing)."""
+    if len(ids) and np.array_equal(ids, np.arange(ids[0], ids[0] + len(ids))):
+        return slice(int(ids[0]), int(ids[0]) + len(ids))
+    return ids
 
 
 class MujocoWorld(World):
@@ -102,6 +134,8 @@ class MujocoWorld(World):
     :param nominal_mouth: the hole's mouth at offset zero (world, m).
     :param plant: how the simulated arm departs from its URDF (the nominal plant only).
     """
+
+    lockstep = True  # Python, not MuJoCo, costs most of a physics step (docs/PERFORMANCE.md)
 
     def __init__(
         self,
@@ -119,6 +153,7 @@ class MujocoWorld(World):
         joints = [m.joint(name).id for name in arm.joint_names]
         self.qpos_ids = m.jnt_qposadr[joints]
         self.dof_ids = m.jnt_dofadr[joints]
+        self._q, self._dofs = _index(self.qpos_ids), _index(self.dof_ids)
         self.point_body = m.body(arm.point_link).id
         self.hole_mocap = m.body_mocapid[m.body(HOLE).id]
         self._stabilise_damping(joints)
@@ -197,10 +232,9 @@ class MujocoWorld(World):
     def _joint_state(self) -> tuple[np.ndarray, np.ndarray]:
         """The joints now; a physics step since the last reset whose accelerations were not
         finite (MuJoCo counts it, and resets the data) is a :class:`NumericalError`."""
-        d = self.data
-        if d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0:
+        if self._badqacc.number > 0:
             raise NumericalError("the simulation blew up: MuJoCo's accelerations are not finite")
-        return d.qpos[self.qpos_ids].copy(), d.qvel[self.dof_ids].copy()
+        return self._qpos[self._q].copy(), self._qvel[self._dofs].copy()
 
     def _point_pose(self) -> tuple[np.ndarray, np.ndarray]:
         mujoco.mj_kinematics(self.model, self.data)
@@ -208,42 +242,36 @@ class MujocoWorld(World):
         return self.data.xpos[body].copy(), self.data.xmat[body].reshape(3, 3).copy()
 
     def _physics_step(self, tau: np.ndarray) -> None:
-        m, d = self.model, self.data
-        mujoco.mj_step1(m, d)  # positions and velocities: what the damping wrenches need
-        self._link_damping()
-        d.qfrc_applied[self.dof_ids] = tau - self.damping * d.qvel[self.dof_ids]
-        mujoco.mj_step2(m, d)
+        _physics_steps([self], tau[None])
+
+    @classmethod
+    def step_together(cls, worlds: Sequence[World], u: np.ndarray) -> np.ndarray:
+        """:meth:`step` of each world, their physics steps taken together: the link damping of
+        all worlds in one pass of numpy (:func:`link_damping`), each world's numbers its own."""
+        mine = [world for world in worlds if isinstance(world, MujocoWorld)]
+        if len(mine) != len(worlds):
+            raise TypeError("MujocoWorld.step_together steps MuJoCo worlds only")
+        taus = np.stack([world._command(row) for world, row in zip(mine, u, strict=True)])
+        for s in range(taus.shape[1]):
+            _physics_steps(mine, taus[:, s])
+        return np.stack([world.observe() for world in mine])
 
     def _damping_views(self) -> None:
-        """Views into the data's arrays that :meth:`_link_damping` reads and writes, for the
+        """Views into the data's arrays that :func:`_physics_steps` reads and writes, for the
         arm's bodies (1 up to the hole's; a massless one gets no wrench): these are the same
-        arrays for the world's life, so each physics step costs no look-up or copy of them."""
+        arrays for the world's life, so each physics step costs no look-up of them."""
         m, d = self.model, self.data
         arm = slice(1, m.body(HOLE).id)
         (root,) = set(m.body_rootid[arm].tolist())  # a URDF is one tree
         self._mass = -LINK_DAMPING * m.body_mass[arm, None]
-        self._inertia = -LINK_DAMPING * m.body_inertia[arm, None, :]  # principal, with rotors
-        self._omega, self._linear = d.cvel[arm, :3], d.cvel[arm, 3:]  # at the subtree's COM
-        self._com, self._root_com = d.xipos[arm], d.subtree_com[root]
+        self._inertia = -LINK_DAMPING * m.body_inertia[arm]  # principal, with rotors
+        self._cvel, self._com = d.cvel[arm], d.xipos[arm]
+        self._root_com = d.subtree_com[root : root + 1]
         self._R = d.ximat[arm].reshape(-1, 3, 3)
         self._wrench = d.xfrc_applied[arm].reshape(-1, 2, 3)
-        self._moving = np.empty_like(self._wrench)  # v and w, then v and I w
-
-    def _link_damping(self) -> None:
-        """Bullet's link damping as wrenches (force, then moment) at the arm bodies' centres
-        of mass, written to ``xfrc_applied``: on a body of mass m, COM velocity v, angular
-        velocity w and world inertia I, ``-k (1 + |v|) m v`` and ``-k (1 + |w|) I w``
-        (k = :data:`LINK_DAMPING`); all bodies at once, in a few numpy calls, as each physics
-        step runs it."""
-        omega, moving = self._omega, self._moving
-        lever = (omega[:, :, None] * (self._com - self._root_com)[:, None, :]).reshape(-1, 9)
-        np.add(self._linear, lever @ EPSILON, out=moving[:, 0])
-        moving[:, 1] = omega
-        factor = 1 + np.sqrt(np.einsum("bki,bki->bk", moving, moving))[:, :, None]
-        R = self._R
-        np.matmul(self._inertia * (omega[:, None, :] @ R), R.transpose(0, 2, 1), out=moving[:, 1:])
-        factor[:, 0] *= self._mass
-        np.multiply(factor, moving, out=self._wrench)
+        self._qvel, self._qfrc = d.qvel, d.qfrc_applied
+        self._qpos = d.qpos
+        self._badqacc = d.warning[mujoco.mjtWarning.mjWARN_BADQACC]
 
     def gravity_compensation(self) -> np.ndarray:
         """``g(q) [dof]`` at the current joint angles: MuJoCo's inverse dynamics at rest."""
@@ -265,3 +293,27 @@ class MujocoWorld(World):
 
     def close(self) -> None:
         """Nothing to release: the model and data are freed with the world."""
+
+
+def _physics_steps(worlds: Sequence[MujocoWorld], tau: np.ndarray) -> None:
+    """One physics step of each of ``worlds`` (of one arm and configuration) with its row of
+    joint torques ``tau: [n, dof]``: MuJoCo's step in two halves, between them the URDF's
+    joint damping and Bullet's link damping (:func:`link_damping`, all worlds at once) at the
+    velocities the step starts from, as PyBullet applies them."""
+    for world in worlds:
+        mujoco.mj_step1(world.model, world.data)  # positions and velocities
+    first = worlds[0]
+    wrench = link_damping(
+        np.array([world._cvel for world in worlds]),
+        np.array([world._com for world in worlds]),
+        np.array([world._root_com for world in worlds]),
+        np.array([world._R for world in worlds]),
+        first._mass,
+        first._inertia,
+    )
+    qvel = np.array([world._qvel[world._dofs] for world in worlds])
+    applied = tau - first.damping * qvel
+    for world, row, torque in zip(worlds, wrench, applied, strict=True):
+        world._wrench[:] = row
+        world._qfrc[world._dofs] = torque
+        mujoco.mj_step2(world.model, world.data)

@@ -1,15 +1,22 @@
 """Rollouts: N worlds stepped in lockstep, the actions computed for all N in one torch call;
-or each rollout alone (:func:`rollout_rows`), the form that worker processes share out.
+or the rows of a batch (:func:`rollout_rows`), the form that worker processes share out, each
+rollout's result its row's alone.
 
 The only numpy in the algorithm path is here, at the simulator boundary: the state of each
 world is read into one ``[N, dX]`` array, turned into a tensor, the acting controller maps it
 to ``[N, dU]`` torques, and these go back to the worlds.
+
+A matrix product's rows depend on how many rows it multiplies (its kernel differs), so a row
+acted on in a batch may differ in the last bit from the same row alone. Where the engine steps
+worlds together (:attr:`World.lockstep <lolgps_torch.sim.simulator.World.lockstep>`, MuJoCo)
+and the actor has a row-wise form (:class:`Rowwise`: elementwise products and sums, no matrix
+product), :func:`rollout_rows` steps a batch's rows together; otherwise each row runs alone.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple, Protocol
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -29,6 +36,22 @@ class Actor(Protocol):
     def __call__(self, t: int, x: Tensor, rows: slice, /) -> Tensor: ...
 
 
+@runtime_checkable
+class Rowwise(Protocol):
+    """An actor with a row-wise form: the same actions, each row's computed by operations
+    whose result for a row does not depend on the other rows of the call."""
+
+    def rowwise(self) -> Actor:
+        """The actor's row-wise form."""
+        ...
+
+
+def matmul_rows(x: Tensor, A: Tensor) -> Tensor:
+    """``x @ A^T`` for ``x: [n, k]``, ``A: [m, k]``, as elementwise products summed over the
+    last axis: each row's bits are the same whatever the other rows (tests/test_guard.py)."""
+    return (A * x.unsqueeze(-2)).sum(-1)
+
+
 class LinearGaussianActor(NamedTuple):
     """``u_t = K_t x_t + k_t + shifted_t`` for the batch's rows ``rows``; plain data, so that it
     can be sent to a worker process."""
@@ -39,6 +62,20 @@ class LinearGaussianActor(NamedTuple):
 
     def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
         return x @ self.K[t].T + self.k[t] + self.shifted[rows, t]
+
+    def rowwise(self) -> Actor:
+        return RowwiseLinearGaussian(self.K, self.k, self.shifted)
+
+
+class RowwiseLinearGaussian(NamedTuple):
+    """:class:`LinearGaussianActor` row-wise (:func:`matmul_rows`)."""
+
+    K: Tensor  # [T, dU, dX]
+    k: Tensor  # [T, dU]
+    shifted: Tensor  # [N, T, dU]
+
+    def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
+        return matmul_rows(x, self.K[t]) + self.k[t] + self.shifted[rows, t]
 
 
 def linear_gaussian_actor(controller: LinearGaussian, noise: Tensor) -> Actor:
@@ -77,12 +114,23 @@ class Sampler:
         self.q0 = np.asarray(q0, dtype=np.float64)
         self.device = torch.device(device)
         self.worlds: list[World] = []
+        self._build = (simulator, arm, config, nominal_mouth, plant)
         try:
-            for _ in range(n_worlds):
-                self.worlds.append(build_world(simulator, arm, config, nominal_mouth, plant))
+            self.grow(n_worlds)
         except BaseException:
             self.close()
             raise
+
+    @property
+    def lockstep(self) -> bool:
+        """Whether this engine steps a batch's rows together (:attr:`World.lockstep`)."""
+        return self.worlds[0].lockstep
+
+    def grow(self, n_worlds: int) -> None:
+        """Build worlds until there are at least ``n_worlds``."""
+        simulator, arm, config, nominal_mouth, plant = self._build
+        while len(self.worlds) < n_worlds:
+            self.worlds.append(build_world(simulator, arm, config, nominal_mouth, plant))
 
     def rollout(
         self,
@@ -94,32 +142,44 @@ class Sampler:
         (``x_T`` the state after the last action), u ``[N, T, dU]`` and the final tip distance
         ``[N]`` (float64 tensors on the sampler's device). Rollout i's sensor noise is drawn
         from ``keys[i]`` (default ``(i,)``)."""
-        T = self.config.T
         keys = [(i,) for i in range(len(offsets))] if keys is None else keys
-        results_x, results_u, results_d = [], [], []
+        parts = []
         for start in range(0, len(offsets), len(self.worlds)):
             chunk = list(offsets[start : start + len(self.worlds)])
-            worlds = self.worlds[: len(chunk)]
-            for world, off in zip(worlds, chunk, strict=True):
-                world.set_hole(off)
-            x_np = np.stack([w.reset(self.q0, keys[start + i]) for i, w in enumerate(worlds)])
-            xs = np.empty((len(chunk), T + 1, x_np.shape[1]))
-            us = np.empty((len(chunk), T, len(self.q0)))
-            for t in range(T):
-                xs[:, t] = x_np
-                x_t = torch.from_numpy(x_np).to(self.device)
-                u_np = act(t, x_t, slice(start, start + len(chunk))).cpu().numpy()
-                us[:, t] = u_np
-                x_np = np.stack([w.step(u) for w, u in zip(worlds, u_np, strict=True)])
-            xs[:, T] = x_np
-            results_x.append(xs)
-            results_u.append(us)
-            results_d.append([w.tip_distance() for w in worlds])
+            rows = slice(start, start + len(chunk))
+            parts.append(self.episode(act, chunk, keys[rows], rows))
+        x, u, final = (np.concatenate(field) for field in zip(*parts, strict=True))
         return (
-            torch.as_tensor(np.concatenate(results_x), dtype=torch.float64, device=self.device),
-            torch.as_tensor(np.concatenate(results_u), dtype=torch.float64, device=self.device),
-            torch.as_tensor(np.concatenate(results_d), dtype=torch.float64, device=self.device),
+            torch.as_tensor(x, dtype=torch.float64, device=self.device),
+            torch.as_tensor(u, dtype=torch.float64, device=self.device),
+            torch.as_tensor(final, dtype=torch.float64, device=self.device),
         )
+
+    def episode(
+        self,
+        act: Actor,
+        offsets: Sequence[tuple[float, float]],
+        keys: Sequence[tuple[int, ...]],
+        rows: slice,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One episode of the first ``len(offsets)`` worlds in lockstep, acted on by ``act``'s
+        batch rows ``rows``: x ``[n, T+1, dX]``, u ``[n, T, dU]``, final distances ``[n]``."""
+        T = self.config.T
+        worlds = self.worlds[: len(offsets)]
+        step = type(worlds[0]).step_together
+        for world, off in zip(worlds, offsets, strict=True):
+            world.set_hole(off)
+        x_np = np.stack([w.reset(self.q0, key) for w, key in zip(worlds, keys, strict=True)])
+        xs = np.empty((len(worlds), T + 1, x_np.shape[1]))
+        us = np.empty((len(worlds), T, len(self.q0)))
+        for t in range(T):
+            xs[:, t] = x_np
+            x_t = torch.from_numpy(x_np).to(self.device)
+            u_np = act(t, x_t, rows).cpu().numpy()
+            us[:, t] = u_np
+            x_np = step(worlds, u_np)
+        xs[:, T] = x_np
+        return xs, us, np.array([w.tip_distance() for w in worlds])
 
     def close(self) -> None:
         for w in self.worlds:
@@ -133,10 +193,37 @@ def rollout_rows(
     rows: Sequence[int],
     batch: int = 0,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The rollouts of the batch's ``rows`` (row i at ``offsets[i]``), each run alone in
-    ``sampler``'s first world, stacked as :meth:`Sampler.rollout` returns them; row i's sensor
-    noise is keyed ``(batch, i)``. A rollout's result depends on its row alone, not on which
-    rows share the call, so any split of a batch over processes gives the same rollouts."""
-    parts = [sampler.rollout(RowActor(act, row), [offsets[row]], [(batch, row)]) for row in rows]
-    x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
+    """The rollouts of the batch's ``rows`` (row i at ``offsets[i]``), stacked as
+    :meth:`Sampler.rollout` returns them; row i's sensor noise is keyed ``(batch, i)``.  Each
+    run of consecutive rows is stepped together where the engine and the actor allow it (module
+    docstring; ``sampler`` grows the worlds it needs), else each row runs alone in ``sampler``'s
+    first world. A rollout's result depends on its row alone, not on which rows share the
+    call, so any split of a batch over processes gives the same rollouts."""
+    if not (sampler.lockstep and isinstance(act, Rowwise)):
+        parts = [
+            sampler.rollout(RowActor(act, row), [offsets[row]], [(batch, row)]) for row in rows
+        ]
+        x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
+        return x, u, final
+    rowwise = act.rowwise()
+    runs: list[list[int]] = []
+    for row in rows:
+        if runs and runs[-1][-1] + 1 == row:
+            runs[-1].append(row)
+        else:
+            runs.append([row])
+    sampler.grow(max(len(run) for run in runs))
+    parts_np = [
+        sampler.episode(
+            rowwise,
+            [offsets[r] for r in run],
+            [(batch, r) for r in run],
+            slice(run[0], run[-1] + 1),
+        )
+        for run in runs
+    ]
+    x, u, final = (
+        torch.as_tensor(np.concatenate(field), dtype=torch.float64, device=sampler.device)
+        for field in zip(*parts_np, strict=True)
+    )
     return x, u, final

@@ -191,6 +191,11 @@ class World(ABC):
     :param plant: how the simulated arm departs from its URDF.
     """
 
+    #: whether a batch's rollouts run together (:meth:`step_together`, and actors that act on
+    #: each row alone, :class:`~lolgps_torch.sim.rollout.Rowwise`) rather than one at a time:
+    #: an engine whose step costs mostly Python, not physics, gains from it
+    lockstep: bool = False
+
     def __init__(
         self,
         arm: ArmSpec,
@@ -296,20 +301,34 @@ class World(ABC):
         """Issue torque ``u`` (on top of gravity compensation) for one control step, starting
         from the state the last :meth:`reset`, :meth:`observe` or :meth:`step` returned; with a
         delay of d physics steps, the commands issued d steps earlier act instead."""
+        for tau in self._command(u):
+            self._physics_step(tau)
+        return self.observe()
+
+    def _command(self, u: np.ndarray) -> np.ndarray:
+        """The book-keeping of a control step issuing ``u`` (:meth:`step`), and the joint
+        torques of its physics steps, ``[substeps, dof]``."""
         substeps = self.config.substeps
         if not np.all(np.isfinite(u)):
             raise NumericalError("non-finite action: the controller produced NaN or inf torques")
         g = self.gravity_compensation()
-        held = np.concatenate([self._queue, np.broadcast_to(u, (substeps, len(u)))])
+        held = np.empty((self.delay + substeps, len(u)))
+        held[: self.delay] = self._queue
+        held[self.delay :] = u
         self._queue = held[substeps:]
         # the commands as they act (within the effort limits): past commands beyond them
         # would grow without bound under a controller that feeds them back
         acting = np.clip(u + g, -self.effort, self.effort) - g
         self._issued = np.concatenate([acting[None], self._issued])[: len(self._issued)]
         self._prev_points = self._points
-        for tau in np.clip(held[:substeps] + g, -self.effort, self.effort):
-            self._physics_step(tau)
-        return self.observe()
+        return np.clip(held[:substeps] + g, -self.effort, self.effort)
+
+    @classmethod
+    def step_together(cls, worlds: Sequence[World], u: np.ndarray) -> np.ndarray:
+        """:meth:`step` of each of ``worlds`` (of this engine) with its row of ``u: [n, dU]``;
+        the states ``[n, dX]``.  Each world's state is what its own :meth:`step` returns: an
+        engine may take the worlds' physics steps together, never mixing their numbers."""
+        return np.stack([world.step(row) for world, row in zip(worlds, u, strict=True)])
 
     def tip_distance(self) -> float:
         """Distance (m) from the peg tip to the hole-floor target."""
