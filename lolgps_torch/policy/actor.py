@@ -13,31 +13,6 @@ from lolgps_torch.sim.rollout import Actor, matmul_rows
 from lolgps_torch.state import StateLayout
 
 
-def _rowwise_layers(layers: torch.nn.Module, h: Tensor) -> Tensor:
-    """``layers(h)`` with each linear layer's product as :func:`matmul_rows`."""
-    for layer in layers.children():
-        if isinstance(layer, torch.nn.Linear):
-            h = matmul_rows(h, layer.weight) + layer.bias
-        else:
-            h = layer(h)
-    return h
-
-
-def rowwise_mean(policy: GaussianPolicy, x: Tensor) -> Tensor:
-    """``policy(x)`` for ``x: [n, dX]`` with every matrix product as :func:`matmul_rows`, so
-    that each row's action has the same bits whatever the other rows (equal to ``policy(x)``
-    to rounding)."""
-    z = (x - policy.x_mean) / policy.x_std
-    if policy.config.feedback:
-        h = _rowwise_layers(policy.net[:-1], z)
-        gain = matmul_rows(h, policy.gain.weight) + policy.gain.bias
-        gain = gain.unflatten(-1, (policy.dU, policy.dX))
-        out = _rowwise_layers(policy.net[-1:], h) + (gain * z.unsqueeze(-2)).sum(-1)
-    else:
-        out = _rowwise_layers(policy.net, z)
-    return torch.addcmul(policy.u_mean, out, policy.u_scale)
-
-
 @dataclass
 class PolicyActor:
     """``u_t = mu_theta(x_t) + shifted_t`` for the batch's rows ``rows`` (no noise when
@@ -52,13 +27,13 @@ class PolicyActor:
     by_rows: bool = False
 
     def rowwise(self) -> Actor:
-        """The same actor computing each row alone (:func:`rowwise_mean`, and the guard's
-        brake by :func:`matmul_rows`), for rows stepped together."""
+        """The same actor computing each row alone (every matrix product of the policy and of
+        the guard's brake by :func:`matmul_rows`), for rows stepped together."""
         return replace(self, tripped=torch.zeros(0, dtype=torch.bool), by_rows=True)
 
     def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
         with torch.no_grad():
-            u = rowwise_mean(self.policy, x) if self.by_rows else self.policy(x)
+            u = self.policy(x, matmul_rows) if self.by_rows else self.policy(x)
         u = u if self.shifted is None else u + self.shifted[rows, t]
         start, stop = rows.start or 0, rows.stop
         if stop > self.tripped.shape[0]:

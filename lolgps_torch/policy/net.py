@@ -7,6 +7,7 @@ time) pass through. Parameters and buffers are float64.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any, Literal, get_args
 
@@ -110,13 +111,20 @@ def _mlp(
     return torch.nn.Sequential(*layers[:-1])
 
 
-def _forward(layers: list[torch.nn.Module], h: Tensor) -> Tensor:
+Product = Callable[[Tensor, Tensor], Tensor]  # (x, W) -> x W^T
+
+
+def _forward(layers: list[torch.nn.Module], h: Tensor, product: Product | None) -> Tensor:
     """``layers`` applied in turn, linear layers and ReLUs as functions of their weights: the
     same arithmetic as calling them, without the module call's bookkeeping, which took 60 % of
-    a one-row evaluation (every control step of a policy rollout)."""
+    a one-row evaluation (every control step of a policy rollout). ``product`` replaces a linear
+    layer's ``h W^T`` (None: torch's)."""
     for layer in layers:
         if isinstance(layer, torch.nn.Linear):
-            h = functional.linear(h, layer.weight, layer.bias)
+            if product is None:
+                h = functional.linear(h, layer.weight, layer.bias)
+            else:
+                h = product(h, layer.weight) + layer.bias
         elif isinstance(layer, torch.nn.ReLU):
             h = h.relu()
         else:
@@ -178,20 +186,21 @@ class GaussianPolicy(torch.nn.Module):
         self.register_buffer("guard_brake", off.brake)
         self.to(device)
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Action mean ``mu_theta(x)``: ``[..., dX] -> [..., dU]``."""
-        return torch.addcmul(
-            self.u_mean, self.unscaled((x - self.x_mean) / self.x_std), self.u_scale
-        )
+    def forward(self, x: Tensor, product: Product | None = None) -> Tensor:
+        """Action mean ``mu_theta(x)``: ``[..., dX] -> [..., dU]``; ``product(x, W)`` in place
+        of each matrix product ``x W^T`` (None: torch's; a row-wise one for rows stepped
+        together, :func:`lolgps_torch.sim.rollout.matmul_rows`)."""
+        z = (x - self.x_mean) / self.x_std
+        return torch.addcmul(self.u_mean, self.unscaled(z, product), self.u_scale)
 
-    def unscaled(self, z: Tensor) -> Tensor:
+    def unscaled(self, z: Tensor, product: Product | None = None) -> Tensor:
         """The net's output at whitened states ``z``, before the output scaling."""
         layers = list(self.net)
         if not self.config.feedback:
-            return _forward(layers, z)
-        h = _forward(layers[:-1], z)
-        gain = functional.linear(h, self.gain.weight, self.gain.bias)
-        out = _forward(layers[-1:], h)
+            return _forward(layers, z, product)
+        h = _forward(layers[:-1], z, product)
+        gain = _forward([self.gain], h, product)
+        out = _forward(layers[-1:], h, product)
         return out + (gain.unflatten(-1, (self.dU, self.dX)) * z.unsqueeze(-2)).sum(-1)
 
     @property
