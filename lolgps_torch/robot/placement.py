@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -36,6 +37,7 @@ from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.spec import ArmSpec
 
 Position = tuple[float, float]
+Spots = Literal["grid", "sampled", "both"]
 # (rho, eta) offsets from the preferred fractions, and azimuths (degrees) about the base's +x,
 # tried by the placement
 _STEPS = (0.0, -0.1, 0.1, -0.2, 0.2, 0.3)
@@ -177,7 +179,7 @@ def _workspace(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float, Tensor,
 
 
 def place_task(
-    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, depth: float
+    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, depth: float, spots: Spots = "both"
 ) -> TaskGeometry:
     """The first nominal hole (module docstring) at which the start pose and the floor of the
     hole at every position are reachable with the peg pointing down; the start pose from IK
@@ -190,7 +192,11 @@ def place_task(
     from random poses.
 
     :param depth: the hole's depth (m): the tip's target is that far below the mouth.
+    :param spots: the candidates searched: the grid about the preferred spot, the spots about
+        the sampled tips (:func:`_cloud_candidates`), or both, in that order.
     """
+    if spots not in ("grid", "sampled", "both"):
+        raise LolgpsError(f"placement spots must be grid, sampled or both, got {spots!r}")
     if config.q0 is not None and len(config.q0) != arm.dof:
         raise LolgpsError(f"--q0 needs {arm.dof} values, got {len(config.q0)}")
     if config.mouth is not None:
@@ -200,27 +206,29 @@ def place_task(
     positions = torch.tensor(config.positions or ((0.0, 0.0),), dtype=torch.float64)
     positions = positions.to(kin.device)
     floor = torch.nn.functional.pad(positions, (0, 1), value=-depth)  # [M, 3] below the mouth
-    near_mouths, near_starts = _candidates(
-        shoulder, radius, positions, config, (_STEPS, _START_SCALES)
-    )
-    far_mouths, far_starts = _candidates(
-        shoulder, radius, positions, config, (_FAR_HEIGHTS, _FAR_START_SCALES)
-    )
-    mouths = torch.cat([near_mouths, far_mouths])  # [C, 3]
-    start_offsets = torch.cat([near_starts, far_starts])
     if cloud_tip.shape[0] == 0:
         raise LolgpsError(_cannot_point_down(arm, radius))
     rank = generic_rank(kin, cloud_q[:_RANK_POSES])
     search = _Search(arm, kin, config, floor, (cloud_q, cloud_tip), (radius, rank))
-    tips, gap, score = search.screen(mouths, start_offsets)
-    screened = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
-    near = [c for c in screened if c < len(near_mouths)]
-    far = sorted((c for c in screened if c >= len(near_mouths)), key=lambda c: float(score[c]))
-    chunks = [[0]]  # the preferred spot alone first, then the near ones in order, then the far
-    for group in (near, far):
-        chunks += [group[i : i + _VERIFIED] for i in range(0, len(group), _VERIFIED)][:_CHUNKS]
-    found = search.verify(chunks, mouths, start_offsets, tips, gap)
-    if found is None:  # the spots about the sampled tips, wherever the arm points down
+    found = None
+    if spots != "sampled":
+        near_mouths, near_starts = _candidates(
+            shoulder, radius, positions, config, (_STEPS, _START_SCALES)
+        )
+        far_mouths, far_starts = _candidates(
+            shoulder, radius, positions, config, (_FAR_HEIGHTS, _FAR_START_SCALES)
+        )
+        mouths = torch.cat([near_mouths, far_mouths])  # [C, 3]
+        start_offsets = torch.cat([near_starts, far_starts])
+        tips, gap, score = search.screen(mouths, start_offsets)
+        screened = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
+        near = [c for c in screened if c < len(near_mouths)]
+        far = sorted((c for c in screened if c >= len(near_mouths)), key=lambda c: float(score[c]))
+        chunks = [[0]]  # the preferred spot alone first, then the near ones in order, the far
+        for group in (near, far):
+            chunks += [group[i : i + _VERIFIED] for i in range(0, len(group), _VERIFIED)][:_CHUNKS]
+        found = search.verify(chunks, mouths, start_offsets, tips, gap)
+    if found is None and spots != "grid":  # about the sampled tips, wherever the arm points down
         mouths, start_offsets = _cloud_candidates(cloud_tip, positions, depth, config)
         tips, gap, score = search.screen(mouths, start_offsets)
         order = [int(c) for c in score.argsort() if score[c] <= _SCREEN * radius]
