@@ -11,7 +11,9 @@ base's +x, nearest first (:func:`_candidates`): first as it is, then shifted by 
 ``c`` the centre of the stream's positions (so that they straddle the spot).  Where none
 fits, heights further from the preferred one follow (``eta`` up to 0.9 R below the shoulder
 and 0.3 R above it: arms that hang from a torso, or reach up to a table), those whose targets
-lie nearest the sampled down-pointing tips first.  The first mouth
+lie nearest the sampled down-pointing tips first.  Where the grid has none
+(``place_task``'s ``spots``), mouths are placed about the sampled tips themselves
+(:func:`_cloud_candidates`), the start turned to every azimuth.  The first mouth
 at which the start pose and every position's hole floor are reachable with the peg pointing
 down, inside the joint limits' margin, *and* every floor is reached from the start pose by
 following the peg points along the straight line between them (:func:`follow`), never nearer
