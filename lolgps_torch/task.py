@@ -33,6 +33,7 @@ from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.peg import PegConfig
 from lolgps_torch.robot.placement import (
     PlacementConfig,
+    Spots,
     pinned,
     place_task,
     reach,
@@ -157,7 +158,8 @@ def scaled(config: TaskConfig, factor: float) -> TaskConfig:
 def fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
     """``config`` as it is if the placement fits its geometry (the stream's positions in
     ``config.placement``) to the arm, else scaled (:func:`scaled`) to fit: by the arm's reach
-    over :data:`REFERENCE_REACH`, then by :data:`_SHRINK` at each further try.  Returns the
+    over :data:`REFERENCE_REACH`, then by :data:`_SHRINK` at each further try; the placement's
+    spots about the sampled tips are searched only where its grid fits no scale.  Returns the
     config, its placement pinned (the hole and start pose found), and a line saying what was
     scaled ("" when nothing was); a :class:`LolgpsError` when no try fits (the one that says
     why the geometry as given does not).
@@ -168,33 +170,44 @@ def fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
 
 
 def _fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
-    """:func:`fit_scale`, its warnings not silenced."""
+    """:func:`fit_scale`, its warnings not silenced: each scale with the placement's grid of
+    spots first, then each with the spots about the arm's sampled tips (so that an arm the grid
+    places, at some scale, is placed as it was)."""
     arm = load_task_arm(config)
     kinematics = PegKinematics(arm)
     try:
-        return _pinned(config, arm, kinematics), ""
+        return _pinned(config, arm, kinematics, "grid"), ""
     except LolgpsError as error:
         unscaled = error
     radius = reach(arm, kinematics)[1]
     factor = min(1.0, radius / REFERENCE_REACH)
-    for attempt in range(_TRIES):
-        candidate = scaled(config, factor * _SHRINK**attempt)
-        arm = load_task_arm(candidate)
-        try:
-            placed = _pinned(candidate, arm, PegKinematics(arm))
-            break
-        except LolgpsError:
-            if attempt == _TRIES - 1:
-                raise unscaled from None
-    return placed, (
-        f"the default geometry does not fit this arm's reach ({radius:.2f} m): hole offsets, "
-        f"test areas, start height and attached peg scaled by {placed.scale:.3g} (--scale)"
+    tries = [scaled(config, factor * _SHRINK**attempt) for attempt in range(_TRIES)]
+    passes: tuple[tuple[Spots, list[TaskConfig]], ...] = (
+        ("grid", tries),
+        ("sampled", [config, *tries]),
     )
+    for spots, candidates in passes:
+        for candidate in candidates:
+            arm = load_task_arm(candidate)
+            try:
+                placed = _pinned(candidate, arm, PegKinematics(arm), spots)
+            except LolgpsError:
+                continue
+            if placed.scale == config.scale:
+                return placed, ""
+            return placed, (
+                f"the default geometry does not fit this arm's reach ({radius:.2f} m): hole "
+                f"offsets, test areas, start height and attached peg scaled by "
+                f"{placed.scale:.3g} (--scale)"
+            )
+    raise unscaled from None
 
 
-def _pinned(config: TaskConfig, arm: ArmSpec, kinematics: PegKinematics) -> TaskConfig:
+def _pinned(
+    config: TaskConfig, arm: ArmSpec, kinematics: PegKinematics, spots: Spots
+) -> TaskConfig:
     """``config`` with its placement pinned where :func:`place_task` puts the hole."""
-    geometry = place_task(arm, kinematics, config.placement, config.world.depth)
+    geometry = place_task(arm, kinematics, config.placement, config.world.depth, spots)
     return replace(config, placement=pinned(config.placement, geometry))
 
 

@@ -24,9 +24,16 @@ from conftest import ScriptRun, check_published_arm
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.ik import follow, generic_rank
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.peg import PegConfig
-from lolgps_torch.robot.placement import PlacementConfig
+from lolgps_torch.robot.placement import (
+    PlacementConfig,
+    TaskGeometry,
+    place_task,
+    vertical_peg_targets,
+)
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
@@ -58,17 +65,18 @@ CORPUS = {
 FETCH = str(ARMS / "mani_skill/fetch/fetch.urdf")
 PR2 = str(ARMS / "example-robot-data/robots/pr2_description/urdf/pr2.urdf")
 SO100 = str(ARMS / "mani_skill/so100/so100.urdf")
+AL5D = ARMS / "lynxmotion_al5d_description/urdf/al5d_robot.urdf"
 # published arms on a mobile base, on a torso, and small: name -> (URDF, degrees of freedom,
 # the --base-link and --ee-link flags that pick the arm, the scale --scale auto gives it)
 MOUNTED: dict[str, tuple[str, int, tuple[str | None, str | None], float]] = {
     "maniskill-fetch": (FETCH, 7, ("torso_lift_link", None), 1.0),
     "erd-pr2-left": (PR2, 7, ("torso_lift_link", "l_wrist_roll_link"), 1.0),
     "maniskill-so100": (SO100, 5, (None, None), 0.552 / REFERENCE_REACH),  # reach 0.552 m
+    # 4 joints, reach 0.525 m: the default geometry fits it once the peg points along its hand
+    "rtb-al5d": (str(AL5D), 4, (None, None), 1.0),
 }
 # published descriptions that cannot do the task, and the flag or element their error names
 REFUSED = {
-    "rtb-px100": (TROSSEN / "px100.urdf", "--peg-length"),
-    "rtb-al5d": (ARMS / "lynxmotion_al5d_description/urdf/al5d_robot.urdf", "--peg-length"),
     # no <inertial> anywhere: a kinematic-only description
     "rtb-irb140": (ARMS / "abb_irb140_description/urdf/irb140.urdf", "<inertial>"),
 }
@@ -242,7 +250,9 @@ def test_published_arm_that_cannot_do_the_task_gets_one_error_line(
     name: str, tmp_path: Path, run_script: ScriptRunner
 ) -> None:
     """The default stream, unscaled, stops before any work with one line naming what to
-    change (``--scale auto`` fits the small arms' reach: ``test_arm_on_a_base...``)."""
+    change.  (The small arms once refused here, rtb-data's PincherX 100 and AL5D, are placed
+    now: the AL5D's peg along its hand, the PincherX unscaled from the spots about its sampled
+    tips; ``--scale auto`` still scales the PincherX, its grid fitting there first.)"""
     urdf, message = REFUSED[name]
     result = run_script(
         "scripts/run_stream.py", "--urdf", str(urdf), "--scale", "1", "--out", str(tmp_path)
@@ -548,3 +558,75 @@ def test_bad_arm_flags_are_one_error_line_before_any_work(
     errors = [line for line in result.err.splitlines() if line.startswith("error:")]
     assert result.code == 2 and len(errors) == 1, result.err
     assert not (tmp_path / "run").exists()
+
+
+def _hanging_arm(tmp_path: Path, seed: int) -> str:
+    """A 5-joint arm hanging from a torso beside it (yaw, abduction, then three pitch joints
+    straight down), its link lengths drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    upper, fore, hand = rng.uniform(0.25, 0.4), rng.uniform(0.25, 0.4), rng.uniform(0.05, 0.1)
+    joints = [  # (axis, origin from the parent link)
+        ("0 0 1", f"0 {rng.uniform(0.1, 0.3):.3f} 0"),
+        ("1 0 0", "0 0 -0.05"),
+        ("0 1 0", "0 0 -0.05"),
+        ("0 1 0", f"0 0 {-upper:.3f}"),
+        ("0 1 0", f"0 0 {-fore:.3f}"),
+    ]
+    body = "".join(LINK.format(n=f"l{i}") for i in range(7))
+    for i, (axis, xyz) in enumerate(joints, 1):
+        body += (
+            f'<joint name="j{i}" type="revolute"><parent link="l{i - 1}"/><child link="l{i}"/>'
+            f'<origin xyz="{xyz}"/><axis xyz="{axis}"/>'
+            '<limit lower="-2" upper="2" effort="40" velocity="2"/></joint>'
+        )
+    body += f'<joint name="hand" type="fixed"><parent link="l5"/><child link="l6"/><origin xyz="0 0 {-hand:.3f}"/></joint>'
+    path = tmp_path / f"hanging_{seed}.urdf"
+    path.write_text(f'<robot name="hanging">{body}</robot>')
+    return str(path)
+
+
+def _assert_placed(
+    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, depth: float, geometry: TaskGeometry
+) -> None:
+    """The start pose points the peg straight down above the mouth, and every floor of the
+    stream is reached from it continuously (``follow``) within the IK tolerance."""
+    start = torch.tensor(geometry.q0, dtype=torch.float64)
+    tip, top = kin.points(start[None])[0]
+    mouth = torch.tensor(geometry.nominal_mouth, dtype=torch.float64)
+    assert float((top - tip)[:2].norm()) <= 2 * config.ik_tolerance
+    assert float(tip[2]) > float(mouth[2])
+    floors = mouth + torch.nn.functional.pad(
+        torch.tensor(config.positions, dtype=torch.float64), (0, 1), value=-depth
+    )
+    holes = vertical_peg_targets(floors, -arm.point_offsets[1][2])
+    rank = generic_rank(kin, start + 0.1 * torch.randn(8, arm.dof, dtype=torch.float64))
+    error, _ = follow(kin, arm, start, holes, rank)
+    assert float(error.max()) <= config.ik_tolerance
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_spots_about_the_sampled_tips_place_a_hanging_arm(seed: int, tmp_path: Path) -> None:
+    """An arm hanging from a torso (link lengths fuzzed), placed from the spots about its
+    sampled down-pointing tips alone: the start and the whole default stream are reached."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        arm = load_arm(_hanging_arm(tmp_path, seed))
+    kin = PegKinematics(arm)
+    config = PlacementConfig(positions=PAPER_STREAM)
+    geometry = place_task(arm, kin, config, WorldConfig().depth, spots="sampled")
+    _assert_placed(arm, kin, config, WorldConfig().depth, geometry)
+
+
+def test_a_published_small_arm_is_placed_from_the_sampled_spots_too() -> None:
+    """rtb-data's Lynxmotion AL5D (4 joints; the peg along its last link, square to its
+    pitching wrist) places the default stream from the spots about its sampled tips alone (its
+    grid places it too: ``MOUNTED``); an unknown set of spots is one error."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ArmWarning)
+        arm = load_arm(str(AL5D))
+    kin = PegKinematics(arm)
+    config = PlacementConfig(positions=PAPER_STREAM)
+    geometry = place_task(arm, kin, config, WorldConfig().depth, spots="sampled")
+    _assert_placed(arm, kin, config, WorldConfig().depth, geometry)
+    with pytest.raises(LolgpsError, match="spots"):
+        place_task(arm, kin, config, WorldConfig().depth, spots="all")  # type: ignore[arg-type]

@@ -11,7 +11,14 @@ from conftest import ROOT, SMALL, finish_script, start_script
 
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.spec import ArmSpec
-from lolgps_torch.sim.latency import DelayConfig, estimate_delay, excite, impulse
+from lolgps_torch.sim.latency import (
+    EXPLAINED,
+    DelayConfig,
+    Excitation,
+    estimate_delay,
+    excite,
+    impulse,
+)
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 
@@ -99,3 +106,13 @@ def test_one_condition_alone_finds_the_delay_too(tmp_path: Path) -> None:
     assert config["detected_delay"] == pytest.approx(0.05)
     assert config["task"]["world"]["known_delay"] == pytest.approx(0.05)
     assert config["local"]["model_plans"] == 0
+
+
+def test_speeds_the_commands_do_not_explain_give_no_delay() -> None:
+    """Joint speeds unrelated to the commands leave about the same residual at every delay: no
+    delay is estimated, where the smallest residual alone would pick one at random."""
+    rng = np.random.default_rng(3)
+    q, qd = rng.normal(size=(2, 8, 41, 3))
+    estimate = estimate_delay(Excitation(q, qd, rng.normal(size=(8, 40, 3))), 0.04, 4, 0.1)
+    assert int(np.argmin(estimate.relative_rss)) != 0  # the smallest residual's delay
+    assert estimate.steps == 0 and max(estimate.relative_rss) < EXPLAINED

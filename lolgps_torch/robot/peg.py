@@ -46,7 +46,8 @@ class PegConfig:
     :param radius: peg radius.
     :param axis: the end-effector link axis the peg points along: x, y, z, -x, -y or -z, or
         auto: the axis nearest the direction from the last actuated joint to the end-effector
-        link (or, where they coincide, the last joint's roll axis; else z).
+        link (or, where they coincide, the last joint's roll axis, or the direction of the last
+        link square to a pitching last joint's axis).
     :param point_separation: distance from the tip to the second (top) point on the axis.
     """
 
@@ -81,7 +82,8 @@ def auto_axis(chain: list[yourdfpy.Joint], actuated: list[yourdfpy.Joint]) -> st
     """The end-effector link axis (+-x, y, z) nearest the direction, at q = 0, from the last
     actuated joint's origin to the link's origin; where the two coincide, the last joint's
     axis if it rolls along the arm (parallel, within 25 degrees, to the step from the joint
-    before it), pointing away from that joint; otherwise z."""
+    before it), pointing away from that joint, or, if it pitches (its axis parallel to the
+    joint before it), that step's part square to its axis; otherwise z."""
     pose, joints = np.eye(4), []
     for j in chain:
         pose = pose @ (j.origin if j.origin is not None else np.eye(4))
@@ -92,9 +94,16 @@ def auto_axis(chain: list[yourdfpy.Joint], actuated: list[yourdfpy.Joint]) -> st
     if np.linalg.norm(out) < 1e-3:
         step = joints[-1][0] - joints[-2][0] if len(joints) > 1 else np.zeros(3)
         along = float(joints[-1][1] @ step)
-        if np.linalg.norm(step) < 1e-6 or abs(along) < 0.9 * np.linalg.norm(step):
+        rolls = abs(along) >= 0.9 * np.linalg.norm(step) > 0
+        # a last joint parallel to the one before it pitches the tool, which goes on from the
+        # last link square to its axis (a 4-DoF arm's wrist: along that axis the peg would
+        # never turn away from the horizontal)
+        pitches = len(joints) > 1 and abs(float(joints[-1][1] @ joints[-2][1])) >= 0.9
+        out = step - along * joints[-1][1] if pitches else np.zeros(3)
+        if rolls:
+            out = joints[-1][1] * np.sign(along)
+        elif np.linalg.norm(out) < 1e-6:
             return "z"
-        out = joints[-1][1] * np.sign(along)
     local = pose[:3, :3].T @ out
     i = int(np.argmax(np.abs(local)))
     return ("-" if local[i] < 0 else "") + "xyz"[i]

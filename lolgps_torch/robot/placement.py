@@ -11,7 +11,9 @@ base's +x, nearest first (:func:`_candidates`): first as it is, then shifted by 
 ``c`` the centre of the stream's positions (so that they straddle the spot).  Where none
 fits, heights further from the preferred one follow (``eta`` up to 0.9 R below the shoulder
 and 0.3 R above it: arms that hang from a torso, or reach up to a table), those whose targets
-lie nearest the sampled down-pointing tips first.  The first mouth
+lie nearest the sampled down-pointing tips first.  Where the grid has none
+(``place_task``'s ``spots``), mouths are placed about the sampled tips themselves
+(:func:`_cloud_candidates`), the start turned to every azimuth.  The first mouth
 at which the start pose and every position's hole floor are reachable with the peg pointing
 down, inside the joint limits' margin, *and* every floor is reached from the start pose by
 following the peg points along the straight line between them (:func:`follow`), never nearer
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -36,6 +39,7 @@ from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.spec import ArmSpec
 
 Position = tuple[float, float]
+Spots = Literal["grid", "sampled", "both"]
 # (rho, eta) offsets from the preferred fractions, and azimuths (degrees) about the base's +x,
 # tried by the placement
 _STEPS = (0.0, -0.1, 0.1, -0.2, 0.2, 0.3)
@@ -53,6 +57,9 @@ _SCREEN = 0.1  # candidates are solved if every target is this near (x reach) a 
 _VERIFIED = 24  # candidates solved in one IK batch
 _CHUNKS = 4  # batches at most
 _RANK_POSES = 64  # down-pointing poses for the point Jacobian's generic rank
+_CLOUD_MOUTHS = 512  # sampled tips the last candidates are placed about
+_APART = 0.03  # (x reach) the last candidates verified differ by at least this much
+_CDIST_ENTRIES = 1 << 22  # distances computed at once in the screening
 
 
 @dataclass(frozen=True)
@@ -174,7 +181,7 @@ def _workspace(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float, Tensor,
 
 
 def place_task(
-    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, depth: float
+    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, depth: float, spots: Spots = "both"
 ) -> TaskGeometry:
     """The first nominal hole (module docstring) at which the start pose and the floor of the
     hole at every position are reachable with the peg pointing down; the start pose from IK
@@ -187,7 +194,11 @@ def place_task(
     from random poses.
 
     :param depth: the hole's depth (m): the tip's target is that far below the mouth.
+    :param spots: the candidates searched: the grid about the preferred spot, the spots about
+        the sampled tips (:func:`_cloud_candidates`), or both, in that order.
     """
+    if spots not in ("grid", "sampled", "both"):
+        raise LolgpsError(f"placement spots must be grid, sampled or both, got {spots!r}")
     if config.q0 is not None and len(config.q0) != arm.dof:
         raise LolgpsError(f"--q0 needs {arm.dof} values, got {len(config.q0)}")
     if config.mouth is not None:
@@ -197,50 +208,115 @@ def place_task(
     positions = torch.tensor(config.positions or ((0.0, 0.0),), dtype=torch.float64)
     positions = positions.to(kin.device)
     floor = torch.nn.functional.pad(positions, (0, 1), value=-depth)  # [M, 3] below the mouth
-    near_mouths, near_starts = _candidates(
-        shoulder, radius, positions, config, (_STEPS, _START_SCALES)
-    )
-    far_mouths, far_starts = _candidates(
-        shoulder, radius, positions, config, (_FAR_HEIGHTS, _FAR_START_SCALES)
-    )
-    mouths = torch.cat([near_mouths, far_mouths])  # [C, 3]
-    start_offsets = torch.cat([near_starts, far_starts])
-    tips = mouths[:, None] + floor  # [C, M, 3]
-    if config.q0 is None:  # the start tip first
-        tips = torch.cat([(mouths + start_offsets)[:, None], tips], dim=1)  # [C, K, 3]
     if cloud_tip.shape[0] == 0:
         raise LolgpsError(_cannot_point_down(arm, radius))
     rank = generic_rank(kin, cloud_q[:_RANK_POSES])
-    gap = torch.cdist(tips.reshape(-1, 3), cloud_tip).min(dim=-1)  # nearest sampled tip
-    score = gap.values.reshape(tips.shape[:2]).max(dim=-1).values  # [C]
-    screened = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
-    near = [c for c in screened if c < len(near_mouths)]
-    far = sorted((c for c in screened if c >= len(near_mouths)), key=lambda c: float(score[c]))
-    reached, holes_only = 0, False  # most targets reached; all holes reached but not the start
-    stuck: tuple[list[float], float, float] | None = None  # reachable, not from q0: the worst
-    chunks = [[0]]  # the preferred spot alone first, then the near ones in order, then the far
-    for group in (near, far):
-        chunks += [group[i : i + _VERIFIED] for i in range(0, len(group), _VERIFIED)][:_CHUNKS]
-    for chosen in chunks:
-        targets = vertical_peg_targets(tips[chosen].reshape(-1, 3), -arm.point_offsets[1][2])
-        seeds = cloud_q[gap.indices.reshape(tips.shape[:2])[chosen].reshape(-1)]
-        q, err = solve_ik_batch(
-            kin, arm, targets, config.limit_margin, 150, 6, seeds, group=tips.shape[1]
+    search = _Search(arm, kin, config, floor, (cloud_q, cloud_tip), (radius, rank))
+    found = None
+    if spots != "sampled":
+        near_mouths, near_starts = _candidates(
+            shoulder, radius, positions, config, (_STEPS, _START_SCALES)
         )
-        ok = (err <= config.ik_tolerance).reshape(len(chosen), -1)
-        for row, candidate in enumerate(chosen):
-            if bool(ok[row].all()):
-                geometry = _geometry(arm, kin, config, mouths[candidate], start_offsets[candidate])
-                floors = mouths[candidate] + floor
-                miss = _unfollowed(arm, kin, config, geometry.q0, floors, (radius, rank))
-                if miss is None:
-                    return geometry
-                stuck = stuck or (positions[miss[0]].tolist(), miss[1], miss[2])
-        reached = max(reached, int(ok.sum(dim=-1).max()))
-        holes_only = holes_only or (config.q0 is None and bool(ok[:, 1:].all(dim=-1).any()))
+        far_mouths, far_starts = _candidates(
+            shoulder, radius, positions, config, (_FAR_HEIGHTS, _FAR_START_SCALES)
+        )
+        mouths = torch.cat([near_mouths, far_mouths])  # [C, 3]
+        start_offsets = torch.cat([near_starts, far_starts])
+        tips, gap, score = search.screen(mouths, start_offsets)
+        screened = [c for c in range(1, len(mouths)) if score[c] <= _SCREEN * radius]
+        near = [c for c in screened if c < len(near_mouths)]
+        far = sorted((c for c in screened if c >= len(near_mouths)), key=lambda c: float(score[c]))
+        chunks = [[0]]  # the preferred spot alone first, then the near ones in order, the far
+        for group in (near, far):
+            chunks += [group[i : i + _VERIFIED] for i in range(0, len(group), _VERIFIED)][:_CHUNKS]
+        found = search.verify(chunks, mouths, start_offsets, tips, gap)
+    if found is None and spots != "grid":  # about the sampled tips, wherever the arm points down
+        mouths, start_offsets = _cloud_candidates(cloud_tip, positions, depth, config)
+        tips, gap, score = search.screen(mouths, start_offsets)
+        order = [int(c) for c in score.argsort() if score[c] <= _SCREEN * radius]
+        best = _spread(mouths, start_offsets, order, _APART * radius)
+        chunks = [best[i : i + _VERIFIED] for i in range(0, len(best), _VERIFIED)]
+        found = search.verify(chunks, mouths, start_offsets, tips, gap)
+    if found is not None:
+        return found
     raise LolgpsError(
-        _refusal(arm, config, radius, positions, (reached, ok.shape[1]), holes_only, stuck)
+        _refusal(arm, config, radius, positions, search.reached, search.holes_only, search.stuck)
     )
+
+
+class _Search:
+    """The verification of candidate mouths: which are screened in, which are solved by IK in
+    batches, and what the best of them reached (for the refusal).
+
+    :param floor: the hole floors ``[M, 3]`` relative to the mouth.
+    :param cloud: the down-pointing sampled poses ``[P, n]`` and their tips ``[P, 3]``.
+    :param scale: the reach (m) and the point Jacobian's generic rank.
+    """
+
+    def __init__(
+        self,
+        arm: ArmSpec,
+        kin: PegKinematics,
+        config: PlacementConfig,
+        floor: Tensor,
+        cloud: tuple[Tensor, Tensor],
+        scale: tuple[float, int],
+    ) -> None:
+        self.arm, self.kin, self.config, self.floor = arm, kin, config, floor
+        self.cloud_q, self.cloud_tip = cloud
+        self.scale = scale
+        self.reached = (0, floor.shape[0] + (config.q0 is None))  # most targets reached, of
+        self.holes_only = False  # all holes reached, but not the start
+        self.stuck: tuple[list[float], float, float] | None = None  # reachable, not from q0
+
+    def screen(self, mouths: Tensor, starts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The targets ``[C, K, 3]`` of the mouths ``[C, 3]`` (the start tip first), each
+        target's nearest sampled tip, and each mouth's farthest such gap ``[C]``."""
+        tips = mouths[:, None] + self.floor  # [C, M, 3]
+        if self.config.q0 is None:
+            tips = torch.cat([(mouths + starts)[:, None], tips], dim=1)  # [C, K, 3]
+        rows = tips.reshape(-1, 3)
+        block = max(1, _CDIST_ENTRIES // self.cloud_tip.shape[0])
+        gaps = [
+            torch.cdist(rows[i : i + block], self.cloud_tip).min(dim=-1)
+            for i in range(0, len(rows), block)
+        ]
+        gap = torch.cat([g.values for g in gaps])
+        nearest = torch.cat([g.indices for g in gaps])
+        return tips, nearest, gap.reshape(tips.shape[:2]).max(dim=-1).values
+
+    def verify(
+        self,
+        chunks: list[list[int]],
+        mouths: Tensor,
+        starts: Tensor,
+        tips: Tensor,
+        nearest: Tensor,
+    ) -> TaskGeometry | None:
+        """The first candidate of ``chunks`` (in order) whose targets are all solved and whose
+        floors are followed from its start pose (:func:`_unfollowed`), or None."""
+        arm, kin, config = self.arm, self.kin, self.config
+        for chosen in chunks:
+            targets = vertical_peg_targets(tips[chosen].reshape(-1, 3), -arm.point_offsets[1][2])
+            seeds = self.cloud_q[nearest.reshape(tips.shape[:2])[chosen].reshape(-1)]
+            q, err = solve_ik_batch(
+                kin, arm, targets, config.limit_margin, 150, 6, seeds, group=tips.shape[1]
+            )
+            ok = (err <= config.ik_tolerance).reshape(len(chosen), -1)
+            for row, candidate in enumerate(chosen):
+                if bool(ok[row].all()):
+                    geometry = _geometry(arm, kin, config, mouths[candidate], starts[candidate])
+                    floors = mouths[candidate] + self.floor
+                    miss = _unfollowed(arm, kin, config, geometry.q0, floors, self.scale)
+                    if miss is None:
+                        return geometry
+                    offset = self.floor[miss[0], :2].tolist()
+                    self.stuck = self.stuck or (offset, miss[1], miss[2])
+            self.reached = (max(self.reached[0], int(ok.sum(dim=-1).max())), ok.shape[1])
+            self.holes_only = self.holes_only or (
+                config.q0 is None and bool(ok[:, 1:].all(dim=-1).any())
+            )
+        return None
 
 
 def _refusal(
@@ -328,6 +404,49 @@ def _cannot_point_down(arm: ArmSpec, radius: float) -> str:
         f"peg may point along the wrong axis of {arm.ee_link!r} (--peg-axis, now "
         f"{arm.peg_axis or 'carried by the URDF'}; or --ee-link)"
     )
+
+
+def _cloud_candidates(
+    cloud_tip: Tensor, positions: Tensor, depth: float, config: PlacementConfig
+) -> tuple[Tensor, Tensor]:
+    """Nominal mouths ``[C, 3]`` placed about the sampled down-pointing tips ``[P, 3]`` (the
+    stream's centre floor at a tip, at most :data:`_CLOUD_MOUTHS` of them), each with the start
+    offset turned to every azimuth of :data:`_AZIMUTHS` and scaled by every factor of
+    :data:`_FAR_START_SCALES` ``[C, 3]``: spots the grid of :func:`_candidates` misses, for an
+    arm that points the peg down only in a small or oddly placed part of its reach (one that
+    hangs from a torso beside it)."""
+    centre = (positions.min(dim=0).values + positions.max(dim=0).values) / 2
+    stride = max(1, math.ceil(cloud_tip.shape[0] / _CLOUD_MOUTHS))
+    spots = cloud_tip[::stride] - torch.nn.functional.pad(centre, (0, 1), value=-depth)
+    dx, dy, dz = config.start_offset
+    offsets = [
+        [
+            f * (math.cos(a) * dx - math.sin(a) * dy),
+            f * (math.sin(a) * dx + math.cos(a) * dy),
+            f * dz,
+        ]
+        for a in map(math.radians, _AZIMUTHS)
+        for f in _FAR_START_SCALES
+    ]
+    starts = torch.tensor(offsets, dtype=torch.float64, device=cloud_tip.device)
+    mouths = spots[:, None].expand(-1, len(starts), -1).reshape(-1, 3)
+    return mouths, starts.repeat(spots.shape[0], 1)
+
+
+def _spread(mouths: Tensor, starts: Tensor, order: list[int], apart: float) -> list[int]:
+    """The candidates of ``order`` whose mouth or start tip lies more than ``apart`` (m) from
+    those of every earlier one kept, at most :data:`_CHUNKS` batches of them."""
+    spots = torch.cat([mouths, mouths + starts], dim=-1)  # [C, 6]
+    kept: list[int] = []
+    for c in order:
+        if kept:
+            near = (spots[kept] - spots[c]).reshape(-1, 2, 3).norm(dim=-1).max(dim=-1).values
+            if bool((near <= apart).any()):
+                continue
+        kept.append(c)
+        if len(kept) == _CHUNKS * _VERIFIED:
+            break
+    return kept
 
 
 def _candidates(

@@ -109,6 +109,14 @@ class PegWorld(World):
         self.joint_ids = [names[n] for n in self.arm.joint_names]
         self.point_link_id = links[self.arm.point_link]
         self.peg_link_id = links[self.arm.peg_link]
+        try:  # PyBullet keeps the link states of a body of at most so many links
+            pb.getLinkState(self.body, self.point_link_id, physicsClientId=c)
+        except pb.error:
+            raise LolgpsError(
+                f"{self.arm.source_path}: PyBullet cannot read the link states of this body of "
+                f"{len(links)} links (getLinkState failed): remove links the arm does not need "
+                f"(another arm, sensors) from the URDF, or try --sim mujoco"
+            ) from None
         self.movable = movable  # every non-fixed joint, the order inverse dynamics expects
         self.actuated_in_movable = [movable.index(j) for j in self.joint_ids]
         # the velocity motors, at target speed zero, are the joints' Coulomb friction
