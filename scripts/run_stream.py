@@ -72,6 +72,7 @@ STREAM_FLAGS = ConfigFlags(
         "no-guard": ("policy.guard",),
         "guard-torque": ("policy.guard_torque",),
         "guard-speed": ("policy.guard_speed",),
+        "guard-window": ("policy.guard_window",),
         "guard-brake": ("policy.guard_brake",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),

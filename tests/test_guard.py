@@ -31,10 +31,10 @@ def _known_system(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
 
 def test_the_brake_inverts_the_fitted_response() -> None:
     x, u, B = _known_system()
-    guard = fit_guard(x, u, 2.0 * u, LAYOUT.qd, 1.3, 1.2, 0.5)
+    guard = fit_guard(x, u, 2.0 * u, LAYOUT.qd, 1.3, 1.2, None, 0.5)
     assert torch.allclose(guard.brake, -0.5 * torch.linalg.inv(B), atol=1e-9)
     assert torch.allclose(guard.torque, 1.3 * 2.0 * u.abs().amax((0, 1)))
-    assert torch.allclose(guard.speed, 1.2 * x[..., LAYOUT.qd].abs().amax((0, 1)))
+    assert torch.allclose(guard.speed, 1.2 * x[..., LAYOUT.qd].abs().amax((0, 1))[None])
     # the brake takes half the speed away in one step of the known system
     qd = torch.tensor([[0.3, -0.2]], dtype=F64)
     assert torch.allclose(qd + (qd @ guard.brake.T) @ B.T, 0.5 * qd)
@@ -44,29 +44,53 @@ def test_without_a_torque_margin_torques_are_unbounded() -> None:
     x, u, _ = _known_system()
     teacher = u.clone()
     teacher[:, :, 1] = 0.0  # a joint its teachers never pushed stays unbounded too (no 0 * inf)
-    guard = fit_guard(x, u, teacher, LAYOUT.qd, None, 3.0, 0.5)
+    guard = fit_guard(x, u, teacher, LAYOUT.qd, None, 3.0, None, 0.5)
     assert torch.isinf(guard.torque).all() and (guard.torque > 0).all()
-    assert torch.allclose(guard.speed, 3.0 * x[..., LAYOUT.qd].abs().amax((0, 1)))
+    assert torch.allclose(guard.speed, 3.0 * x[..., LAYOUT.qd].abs().amax((0, 1))[None])
+
+
+def test_the_trip_speeds_follow_the_data_step_by_step() -> None:
+    """With a window w, step t's trip speed is the margin times D_g's largest speed from step
+    t - w on (written out by loops here); a window as long as the rollout is the largest over
+    every step at every step."""
+    x, u, _ = _known_system()
+    speeds = x[..., LAYOUT.qd].abs()  # [M, T+1, n]
+    for window in (0, 2, 5):
+        guard = fit_guard(x, u, u, LAYOUT.qd, None, 2.0, window, 0.5)
+        assert guard.speed.shape == speeds.shape[1:]
+        for t in range(speeds.shape[1]):
+            near = speeds[:, max(0, t - window) :]
+            torch.testing.assert_close(guard.speed_at(t), 2.0 * near.amax((0, 1)))
+    whole = fit_guard(x, u, u, LAYOUT.qd, None, 2.0, x.shape[1], 0.5)
+    every = fit_guard(x, u, u, LAYOUT.qd, None, 2.0, None, 0.5)
+    for t in range(x.shape[1] + 3):  # past the last row: the last row
+        torch.testing.assert_close(whole.speed_at(t), every.speed_at(t))
 
 
 def test_the_guard_bounds_torques_and_brakes_once_tripped() -> None:
     guard = Guard(
         torch.tensor([1.0, 2.0], dtype=F64),
-        torch.tensor([1.0, 1.0], dtype=F64),
+        torch.tensor([[1.0, 1.0]], dtype=F64),
         -torch.eye(2, dtype=F64),
     )
     u = torch.tensor([[5.0, -5.0], [0.5, 0.5], [0.5, 0.5]], dtype=F64)
     qd = torch.tensor([[0.0, 0.0], [0.5, 1.5], [0.5, 0.5]], dtype=F64)
     before = torch.tensor([False, False, True])
-    out, tripped = guarded(u, qd, guard, before)
+    out, tripped = guarded(u, qd, guard, before, 0)
     assert tripped.tolist() == [False, True, True]  # a speed past its bound, or tripped before
     assert out.tolist() == [[1.0, -2.0], [-0.5, -1.5], [-0.5, -0.5]]
-    assert torch.equal(guarded(u, qd, Guard.off(2), torch.zeros(3, dtype=torch.bool))[0], u)
+    assert torch.equal(guarded(u, qd, Guard.off(2), torch.zeros(3, dtype=torch.bool), 0)[0], u)
+    # per-step trip speeds: the same speeds pass at step 0 and trip at step 1
+    stepped = guard._replace(speed=torch.tensor([[2.0, 2.0], [1.0, 1.0]], dtype=F64))
+    fresh = torch.zeros(3, dtype=torch.bool)
+    assert guarded(u, qd, stepped, fresh, 0)[1].tolist() == [False, False, False]
+    assert guarded(u, qd, stepped, fresh, 1)[1].tolist() == [False, True, False]
+    assert guarded(u, qd, stepped, fresh, 7)[1].tolist() == [False, True, False]
 
 
 def test_the_actor_latches_per_rollout_and_resets_at_the_start(tmp_path: Path) -> None:
     policy = GaussianPolicy(LAYOUT.dX, LAYOUT.dU)
-    policy.set_guard(Guard(torch.full((2,), 1e6, dtype=F64), torch.ones(2, dtype=F64),
+    policy.set_guard(Guard(torch.full((2,), 1e6, dtype=F64), torch.ones(1, 2, dtype=F64),
                            -torch.eye(2, dtype=F64)))  # fmt: skip
     actor = policy_actor(policy)
     fast = torch.zeros(2, LAYOUT.dX, dtype=F64)
@@ -83,6 +107,15 @@ def test_the_actor_latches_per_rollout_and_resets_at_the_start(tmp_path: Path) -
     loaded = load_policy(tmp_path)
     for a, b in zip(loaded.guard, policy.guard, strict=True):
         assert torch.equal(a, b)
+    # per-step trip speeds round-trip too, and a policy saved with one speed per joint (before
+    # per-step speeds) loads as one row for every step
+    per_step = torch.linspace(1.0, 2.0, 12, dtype=F64).reshape(6, 2)
+    policy.set_guard(policy.guard._replace(speed=per_step))
+    save_policy(tmp_path / "steps", policy)
+    assert torch.equal(load_policy(tmp_path / "steps").guard.speed, per_step)
+    state = {**policy.state_dict(), "guard_speed": torch.ones(2, dtype=F64)}
+    old = GaussianPolicy.from_state(policy.description(), state)
+    assert torch.equal(old.guard.speed, torch.ones(1, 2, dtype=F64))
 
 
 def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
@@ -98,7 +131,7 @@ def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
         policy.x_std.uniform_(0.5, 2.0, generator=g)
     layout = StateLayout(dU)
     brake = torch.randn(dU, dU, dtype=F64, generator=g)
-    policy.set_guard(Guard(torch.full((dU,), 50.0, dtype=F64), torch.full((dU,), 2.0, dtype=F64),
+    policy.set_guard(Guard(torch.full((dU,), 50.0, dtype=F64), torch.full((1, dU), 2.0, dtype=F64),
                            brake))  # fmt: skip
     x = torch.randn(n, dX, dtype=F64, generator=g)
     x[::3, layout.qd] *= 4.0  # rows 0, 3, 6, 9 trip the brake

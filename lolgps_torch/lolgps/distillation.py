@@ -24,7 +24,7 @@ from torch import Tensor
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.replay import ConditionRecord
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill
-from lolgps_torch.policy.guard import fit_guard
+from lolgps_torch.policy.guard import Guard, fit_guard
 from lolgps_torch.policy.sstep import intra_op_threads
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import (
@@ -34,6 +34,21 @@ from lolgps_torch.types import (
     Trajectories,
     VisitedRows,
 )
+
+
+def guard_of(data: list[ConditionSamples], qd: slice, cfg: PolicyConfig) -> Guard | None:
+    """The guard :func:`fit_guard` fits to the conditions' D_g ``data`` (None where none holds
+    a full rollout), with ``cfg``'s margins; ``qd`` is the state's joint-speed slice."""
+    full = [d for d in data if d.final_state is not None and d.x.shape[0] > 0]
+    if not full:
+        return None
+    x = torch.cat([torch.cat([d.x, d.final_state[:, None]], 1) for d in full])  # type: ignore[index]  # final_state checked above
+    u, mean_cur = torch.cat([d.u for d in full]), torch.cat([d.mean_cur for d in full])
+    with intra_op_threads(cfg.num_threads):  # as the S-step: the same bits in any process
+        return fit_guard(
+            x, u, mean_cur, qd, cfg.guard_torque, cfg.guard_speed, cfg.guard_window,
+            cfg.guard_brake,
+        )  # fmt: skip
 
 
 class Labels(NamedTuple):
@@ -160,19 +175,10 @@ class Distiller:
         return losses
 
     def _set_guard(self, policy: GaussianPolicy, data: list[ConditionSamples]) -> None:
-        """The policy's guard from every condition's D_g (:func:`fit_guard`)."""
-        full = [d for d in data if d.final_state is not None and d.x.shape[0] > 0]
-        if not full:
-            return
-        x = torch.cat([torch.cat([d.x, d.final_state[:, None]], 1) for d in full])  # type: ignore[index]  # final_state checked above
-        u, mean_cur = torch.cat([d.u for d in full]), torch.cat([d.mean_cur for d in full])
-        cfg = self.config
-        with intra_op_threads(cfg.num_threads):  # as the S-step: the same bits in any process
-            guard = fit_guard(
-                x, u, mean_cur, self.task.layout.qd, cfg.guard_torque, cfg.guard_speed,
-                cfg.guard_brake,
-            )  # fmt: skip
-        policy.set_guard(guard)
+        """The policy's guard from every condition's D_g (:func:`guard_of`)."""
+        guard = guard_of(data, self.task.layout.qd, self.config)
+        if guard is not None:
+            policy.set_guard(guard)
 
     def stored(self) -> list[ConditionRecord]:
         """The replay's conditions in order; each is read from the file once (the replay only

@@ -43,9 +43,9 @@ class PolicyActor:
         before = self.tripped[start:stop] & (t > 0)
         qd = x[..., StateLayout(self.policy.dU).qd]
         if self.by_rows:
-            u, self.tripped[start:stop] = guarded(u, qd, self.policy.guard, before, matmul_rows)
+            u, self.tripped[start:stop] = guarded(u, qd, self.policy.guard, before, t, matmul_rows)
         else:
-            u, self.tripped[start:stop] = guarded(u, qd, self.policy.guard, before)
+            u, self.tripped[start:stop] = guarded(u, qd, self.policy.guard, before, t)
         return u
 
 

@@ -5,11 +5,16 @@ times the largest torque its teachers ever gave, flinging the arm a metre or mor
 keeps the policy inside what its teachers did, with bounds fitted to every condition's D_g:
 
     u_t = clip(mu_theta(x_t) (+ noise), -tau, tau)      tau_j = torque_margin max |mu_cur,j|
-    once |q-dot_j| > v_j for some joint (v_j = speed_margin max |q-dot_j| over D_g), and for
-    the rest of the rollout:  u_t = clip(-beta B^-1 q-dot_t, -tau, tau)
+    once |q-dot_j(t)| > v_j(t) for some joint, and for the rest of the rollout:
+        u_t = clip(-beta B^-1 q-dot_t, -tau, tau)
+    v_j(t) = speed_margin max_{m, s >= t - w} |q-dot_j^m(s)|
 
 (tau_j infinite unless a torque margin is given: the bound cost reaches to far holes and kept
-the brake from stopping a flung arm).
+the brake from stopping a flung arm). The trip speed at step t is the largest speed D_g still
+reaches from ``w`` steps before t on (``w`` None: one speed for every step, the largest in D_g):
+while the arm moves in it is the teachers' largest, and once they have slowed down to insert,
+theirs from then on. A policy that misses a far hole comes to rest at the plate and is flung
+from there, long after it passed the largest speeds its teachers reached while moving in.
 
 with ``B`` the arm's response to a torque over one control step fitted to D_g's transitions by
 least squares, ``q-dot_{t+1} - q-dot_t ~ B u_t + c``: the brake takes ``beta`` of the joint
@@ -30,8 +35,9 @@ from lolgps_torch.errors import LolgpsError
 
 
 class Guard(NamedTuple):
-    """Torque bounds ``tau [dU]``, the speeds ``v [dU]`` that trip the brake and the brake's
-    gain ``-beta B^-1``, ``[dU, dU]`` (module docstring)."""
+    """Torque bounds ``tau [dU]``, the speeds ``v [S, dU]`` that trip the brake (row ``t`` at
+    step ``t``, the last row from there on: ``S = 1`` is one speed for every step) and the
+    brake's gain ``-beta B^-1``, ``[dU, dU]`` (module docstring)."""
 
     torque: Tensor
     speed: Tensor
@@ -41,7 +47,11 @@ class Guard(NamedTuple):
     def off(cls, dU: int, device: torch.device | str = "cpu") -> Guard:
         """A guard that never acts: unbounded torques and speeds."""
         inf = torch.full((dU,), float("inf"), dtype=torch.float64, device=device)
-        return cls(inf, inf.clone(), torch.zeros(dU, dU, dtype=torch.float64, device=device))
+        return cls(inf, inf[None].clone(), torch.zeros(dU, dU, dtype=torch.float64, device=device))
+
+    def speed_at(self, t: int) -> Tensor:
+        """The trip speeds at step ``t``, ``[dU]``."""
+        return self.speed[min(t, self.speed.shape[0] - 1)]
 
 
 def fit_guard(
@@ -51,11 +61,14 @@ def fit_guard(
     qd: slice,
     torque_margin: float | None,
     speed_margin: float,
+    window: int | None,
     beta: float,
 ) -> Guard:
     """The guard of rollouts with states ``x: [M, T+1, dX]`` (``x_T`` the state after the last
     action), actions ``u: [M, T, dU]`` and teacher means ``mean_cur: [M, T, dU]``; ``qd`` is
-    the state's joint-speed slice (M >= 1); ``torque_margin`` None leaves torques unbounded."""
+    the state's joint-speed slice (M >= 1); ``torque_margin`` None leaves torques unbounded;
+    ``window`` the steps before t from which on D_g's largest speed sets step t's trip speed
+    (None: over every step)."""
     if x.shape[0] == 0:
         raise LolgpsError("the policy's guard needs at least one rollout")
     speeds = x[..., qd]  # [M, T+1, n]
@@ -70,8 +83,14 @@ def fit_guard(
     torque = (
         torch.full_like(largest, math.inf) if torque_margin is None else torque_margin * largest
     )
-    speed = speed_margin * speeds.abs().flatten(0, 1).amax(0)
-    return Guard(torque, speed, -beta * torch.linalg.inv(B))
+    per_step = speeds.abs().amax(0)  # [T+1, n]
+    if window is None:
+        envelope = per_step.amax(0, keepdim=True)
+    else:
+        onward = per_step.flip(0).cummax(0).values.flip(0)  # max over s >= t
+        start = (torch.arange(per_step.shape[0]) - window).clamp(min=0)
+        envelope = onward[start]  # max over s >= t - window, [T+1, n]
+    return Guard(torque, speed_margin * envelope, -beta * torch.linalg.inv(B))
 
 
 def guarded(
@@ -79,12 +98,13 @@ def guarded(
     qd: Tensor,
     guard: Guard,
     tripped: Tensor,
+    t: int,
     product: Callable[[Tensor, Tensor], Tensor] = lambda x, A: x @ A.T,
 ) -> tuple[Tensor, Tensor]:
-    """Actions ``u: [n, dU]`` at joint speeds ``qd: [n, dU]`` through the guard, given which
-    rollouts had ``tripped`` it before (``[n]`` bool); returns the actions and the new
-    ``tripped``. ``product(x, A)`` is ``x @ A^T`` (a row-wise form of it for lockstep
+    """Actions ``u: [n, dU]`` at step ``t`` and joint speeds ``qd: [n, dU]`` through the guard,
+    given which rollouts had ``tripped`` it before (``[n]`` bool); returns the actions and the
+    new ``tripped``. ``product(x, A)`` is ``x @ A^T`` (a row-wise form of it for lockstep
     rollouts)."""
-    tripped = tripped | (qd.abs() > guard.speed).any(-1)
+    tripped = tripped | (qd.abs() > guard.speed_at(t)).any(-1)
     held = torch.where(tripped[:, None], product(qd, guard.brake), u)
     return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), tripped

@@ -1,7 +1,8 @@
 """Evaluate finished runs again under other guard settings, to see what the guard costs and saves.
 
     python scripts/research/guard_variants.py SWEEP_OR_RUN ... --out DIR [--speed V]
-                                              [--torque T | --no-torque] [--off] [--workers N]
+                                              [--window W] [--torque T | --no-torque] [--off]
+                                              [--workers N]
 
 Each evaluated run folder (a sweep folder stands for every evaluated run in it) is copied to
 ``DIR/<run name>`` without its replay, its stage checkpoints' guards re-set, and evaluated on
@@ -9,8 +10,10 @@ the default test areas (``scripts/evaluate.py``). The guard's bounds are margins
 D_g held (:mod:`lolgps_torch.policy.guard`); the run's config.json gives the margins it was
 trained with, so the new ones are set as ratios: ``--speed V`` trips the brake at V times
 D_g's largest joint speeds, ``--torque T`` bounds torques at T times the largest teacher
-torque, ``--no-torque`` leaves them unbounded, ``--off`` turns the whole guard off. The
-brake gain stays the run's. The policies themselves are the runs' own, so only acting
+torque, ``--no-torque`` leaves them unbounded, ``--off`` turns the whole guard off.
+``--window W`` fits the trip speeds step by step instead, to the run's replay (the D_g of the
+conditions up to each checkpoint), at ``--speed`` times (default: the run's margin) D_g's
+largest speed from W steps before each step on. The brake gain stays the run's. The policies themselves are the runs' own, so only acting
 changes; compare with ``scripts/research/seed_table.py RUNS DIR --label trained variant``.
 """
 
@@ -29,7 +32,12 @@ from lolgps_torch.data.checkpoint import load_policy, save_policy
 from lolgps_torch.data.run_folder import EVAL_FILE, REPLAY_FILE, evaluated_runs
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.evaluate import evaluate_run
+from lolgps_torch.lolgps.distillation import guard_of
+from lolgps_torch.lolgps.run import load_run
+from lolgps_torch.policy import PolicyConfig
 from lolgps_torch.policy.guard import Guard
+from lolgps_torch.state import StateLayout
+from lolgps_torch.types import ConditionSamples
 
 
 def parse_args() -> argparse.Namespace:
@@ -42,6 +50,7 @@ def parse_args() -> argparse.Namespace:
     torque = parser.add_mutually_exclusive_group()
     torque.add_argument("--torque", type=float, default=None, help="bound, in teacher torques")
     torque.add_argument("--no-torque", action="store_true", help="torques unbounded")
+    parser.add_argument("--window", type=int, default=None, help="per-step trip speeds")
     parser.add_argument("--off", action="store_true", help="no guard at all")
     parser.add_argument("--workers", type=int, default=2, help="evaluation processes")
     args = parser.parse_args()
@@ -49,17 +58,32 @@ def parse_args() -> argparse.Namespace:
         value = getattr(args, name)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise LolgpsError(f"--{name} must be a positive number, got {value}")
+    if args.window is not None and args.window < 0:
+        raise LolgpsError(f"--window must be at least 0, got {args.window}")
     if args.workers < 1:
         raise LolgpsError(f"--workers must be at least 1, got {args.workers}")
     return args
 
 
-def reguarded(guard: Guard, trained: dict[str, float], args: argparse.Namespace) -> Guard:
+def reguarded(
+    guard: Guard, trained: dict[str, float], args: argparse.Namespace, data: list[ConditionSamples]
+) -> Guard:
     """``guard`` with the margins ``args`` asks for, its bounds rescaled from the ``trained``
-    margins (``guard_speed``, ``guard_torque`` of the run's policy config)."""
+    margins (``guard_speed``, ``guard_torque`` of the run's policy config); with a window, its
+    trip speeds fitted per step to the D_g ``data``."""
     if args.off:
         return Guard.off(guard.torque.shape[0], guard.torque.device)
-    speed = guard.speed * (args.speed / trained["guard_speed"]) if args.speed else guard.speed
+    if args.window is not None:
+        margin = args.speed or trained["guard_speed"]
+        config = PolicyConfig(guard_speed=margin, guard_window=args.window)
+        stepped = guard_of(data, StateLayout(guard.torque.shape[0]).qd, config)
+        if stepped is None:
+            raise LolgpsError("--window: a checkpoint's conditions hold no stored rollout")
+        speed = stepped.speed
+    elif args.speed:
+        speed = guard.speed * (args.speed / trained["guard_speed"])
+    else:
+        speed = guard.speed
     if args.no_torque:
         torque = torch.full_like(guard.torque, math.inf)
     elif args.torque:
@@ -78,9 +102,12 @@ def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None
         raise LolgpsError(f"{source}: its policies were trained without a guard")
     shutil.rmtree(target, ignore_errors=True)
     shutil.copytree(source, target, ignore=shutil.ignore_patterns(REPLAY_FILE, EVAL_FILE, "*.png"))
+    records = load_run(source).records if args.window is not None else []
     for checkpoint in sorted((target / "checkpoints").iterdir()):
         policy = load_policy(checkpoint)
-        policy.set_guard(reguarded(policy.guard, trained, args))
+        last = int(checkpoint.name.rsplit("_", 1)[-1]) if records else -1
+        data = [r.samples for r in records if r.condition <= last]
+        policy.set_guard(reguarded(policy.guard, trained, args, data))
         save_policy(checkpoint, policy)
 
 
