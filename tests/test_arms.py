@@ -630,3 +630,25 @@ def test_a_published_small_arm_is_placed_from_the_sampled_spots_too() -> None:
     _assert_placed(arm, kin, config, WorldConfig().depth, geometry)
     with pytest.raises(LolgpsError, match="spots"):
         place_task(arm, kin, config, WorldConfig().depth, spots="all")  # type: ignore[arg-type]
+
+
+def test_a_body_too_large_for_pybullets_link_states_is_one_error_line(tmp_path: Path) -> None:
+    """PyBullet keeps link states for bodies of up to about 128 links (example-robot-data's
+    two-armed TIAGo has 131): the KUKA with 130 fixed links added on its base is refused by
+    one line naming what to change, not a traceback; with 100 added it builds."""
+    robots = Path("robots").resolve()
+    text = (robots / "kuka_peg.urdf").read_text().replace('filename="', f'filename="{robots}/')
+
+    def with_links(n: int) -> str:
+        extra = "".join(
+            f'<link name="extra{i}"><inertial><mass value="0.01"/><inertia ixx="1e-5" '
+            f'iyy="1e-5" izz="1e-5" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+            f'<joint name="extra{i}_joint" type="fixed"><parent link="iiwa_link_0"/>'
+            f'<child link="extra{i}"/></joint>'
+            for i in range(n)
+        )
+        return _write(tmp_path, f"extra{n}.urdf", text.replace("</robot>", extra + "</robot>"))
+
+    PegWorld(load_arm(with_links(100)), WorldConfig(), (0.6, 0.0, 0.2)).close()
+    with pytest.raises(LolgpsError, match=r"getLinkState failed\): remove links the arm does"):
+        PegWorld(load_arm(with_links(130)), WorldConfig(), (0.6, 0.0, 0.2))
