@@ -11,9 +11,11 @@ from pathlib import Path
 import numpy as np
 import pybullet_data
 import pytest
+import torch
 from conftest import ROOT, finish_script, start_script
 
 from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.gravity import MARGIN, GravityConfig, estimate_gravity, let_go
 from lolgps_torch.sim.plant import PlantConfig
@@ -132,6 +134,15 @@ def test_the_learners_compensation_is_the_urdfs_gravity_torque(arm: ArmSpec) -> 
     finally:
         world.close()
     np.testing.assert_allclose(ours, theirs, atol=1e-8)
+
+
+def test_the_gravity_torque_is_the_rnea_at_rest_to_the_bit(arm: ArmSpec) -> None:
+    """The first-moment form of g(q) the learner's compensation uses gives the full RNEA's
+    numbers at zero velocity and acceleration, bit for bit (the RNEA's other terms are zeros)."""
+    dynamics = ArmDynamics(arm, 9.81, "pybullet")
+    q = torch.from_numpy(np.random.default_rng(1).uniform(-3.0, 3.0, (200, arm.dof)))
+    zeros = torch.zeros_like(q)
+    assert torch.equal(dynamics.gravity_torque(q), dynamics.inverse_dynamics(q, zeros, zeros))
 
 
 def test_a_condition_without_gravity_compensation_is_found_and_learnt(tmp_path: Path) -> None:
