@@ -23,9 +23,10 @@ import torch
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalConfig
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.gravity import GravityConfig
 from lolgps_torch.sim.latency import DelayConfig
 from lolgps_torch.sim.plant import PlantConfig
-from lolgps_torch.task import TaskConfig, measure_delay
+from lolgps_torch.task import TaskConfig, measure_delay, measure_gravity
 
 Position = tuple[float, float]
 
@@ -166,6 +167,7 @@ TASK_FLAGS = ConfigFlags(
         "q0": ("placement.q0",),
         "friction": ("world.friction",),
         "known-delay": ("world.known_delay",),
+        "compensate-gravity": ("world.compensate_gravity",),
         "action-weight": ("cost.action_weight",),
         "descent-height": ("cost.descent_height",),
         "descent-steps": ("cost.descent_steps",),
@@ -259,6 +261,50 @@ def allow_for_delay(
     if seconds >= task.world.dt / 2:
         local = dataclasses.replace(local, model_plans=0)
     return task, local
+
+
+def add_gravity_argument(parser: argparse.ArgumentParser) -> None:
+    """``--detect-gravity``/``--no-detect-gravity``: find whether the arm compensates gravity."""
+    parser.add_argument(
+        "--detect-gravity",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="find from rollouts let go at the start pose whether the arm's commands are "
+        "compensated for gravity before learning, and compensate them with the URDF's model "
+        "where they are not, unless --compensate-gravity is given (default: on)",
+    )
+
+
+def detect_gravity(task: TaskConfig, enabled: bool) -> bool:
+    """Whether the arm's commands lack gravity compensation, found from rollouts let go at the
+    start pose (:func:`~lolgps_torch.task.measure_gravity`), said in one line when they do or
+    when the probe cannot tell (then they are taken as compensated); False when not
+    ``enabled`` or when the task already compensates them."""
+    if not enabled or task.world.compensate_gravity:
+        return False
+    settings = GravityConfig()
+    estimate = measure_gravity(task, settings)
+    if not estimate.compensated:
+        print(
+            "the arm's commands are not compensated for gravity (it falls as the URDF's model "
+            f"predicts, in {settings.rollouts} rollouts let go at the start pose): the learner "
+            "adds the model's g(q) to every command (--compensate-gravity; --no-detect-gravity "
+            "to learn without)"
+        )
+    elif not estimate.conclusive:
+        print(
+            "whether the arm's commands are compensated for gravity is unclear (residuals "
+            f"{estimate.rss_none:.3g} without, {estimate.rss_compensated:.3g} with, N^2 m^2): "
+            "taken as compensated (--compensate-gravity to add the URDF model's g(q))"
+        )
+    return not estimate.compensated
+
+
+def compensate_gravity(task: TaskConfig) -> TaskConfig:
+    """The task whose learner adds its own model's ``g(q)`` to every command
+    (``WorldConfig.compensate_gravity``: the planned start, the model prior and the
+    controllers then act over model-based compensation, as on a compensated arm)."""
+    return dataclasses.replace(task, world=dataclasses.replace(task.world, compensate_gravity=True))
 
 
 WORKERS_VARIABLE = "LOLGPS_WORKERS"

@@ -8,7 +8,8 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -42,12 +43,13 @@ from lolgps_torch.robot.placement import (
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.engines import build_world, engine_errors
+from lolgps_torch.sim.gravity import GravityConfig, GravityEstimate, estimate_gravity, let_go
 from lolgps_torch.sim.latency import DelayConfig, DelayEstimate, estimate_delay, excite
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
-from lolgps_torch.sim.simulator import Simulator, WorldConfig, check_plant, require
+from lolgps_torch.sim.simulator import Simulator, World, WorldConfig, check_plant, require
 from lolgps_torch.types import Trajectories
 
 IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses
@@ -379,19 +381,39 @@ class PegTask:
             self.pool.close()
 
 
-def measure_delay(config: TaskConfig, settings: DelayConfig) -> DelayEstimate:
-    """The command delay of the arm ``config`` describes, estimated from excitation rollouts at
-    its start pose (:mod:`lolgps_torch.sim.latency`) in a world of its own, so that the
-    task's worlds and random streams are untouched."""
+@contextmanager
+def probe_world(config: TaskConfig) -> Iterator[tuple[World, np.ndarray]]:
+    """A world of its own for probing the arm ``config`` describes before learning, its hole
+    at offset zero, and the start pose q0: the task's worlds and random streams stay
+    untouched. Closed on leaving the context."""
     arm = load_task_arm(config)
     geometry = place_task(arm, PegKinematics(arm), config.placement, config.world.depth)
     world = build_world(config.sim, arm, config.world, geometry.nominal_mouth, config.plant)
     try:
         world.set_hole((0.0, 0.0))
-        data = excite(world, np.asarray(geometry.q0, dtype=np.float64), settings)
+        yield world, np.asarray(geometry.q0, dtype=np.float64)
     finally:
         world.close()
+
+
+def measure_delay(config: TaskConfig, settings: DelayConfig) -> DelayEstimate:
+    """The command delay of the arm ``config`` describes, estimated from excitation rollouts at
+    its start pose (:mod:`lolgps_torch.sim.latency`) in a :func:`probe_world`."""
+    with probe_world(config) as (world, q0):
+        data = excite(world, q0, settings)
     return estimate_delay(data, config.world.dt, config.world.substeps, settings.longest)
+
+
+def measure_gravity(config: TaskConfig, settings: GravityConfig) -> GravityEstimate:
+    """Whether the arm ``config`` describes compensates its commands for gravity, from
+    rollouts let go at its start pose (:mod:`lolgps_torch.sim.gravity`) in a
+    :func:`probe_world` without the learner's own compensation."""
+    world_config = replace(config.world, compensate_gravity=False)
+    with probe_world(replace(config, world=world_config)) as (world, q0):
+        states = let_go(world, q0, settings)
+        inertia = world.effective_inertia(q0.tolist()).numpy()
+        arm = world.arm
+    return estimate_gravity(states, arm, world_config, inertia)
 
 
 def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:

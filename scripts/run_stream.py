@@ -14,6 +14,12 @@ and the reachability of every hole offset (the hole is placed so that all are re
 are checked before anything is written. An
 interrupted run continues from its last completed condition with --resume.
 
+Unless --compensate-gravity is given or --no-detect-gravity, the arm is first let go at the
+start pose for a few control steps (``lolgps_torch/sim/gravity.py``): where it falls as the
+URDF's model predicts without gravity compensation, the learner adds the model's g(q) to every
+command (config.json's ``task.world.compensate_gravity``), as one printed line, config.json's
+and summary.json's ``detected_gravity_compensation`` ("none") say.
+
 Unless --known-delay is given or --no-detect-delay, the arm's command delay is first estimated
 from a few excitation rollouts at the start pose (``lolgps_torch/sim/latency.py``, on
 random streams of its own); a delay found (not zero) becomes the learner's known delay, and
@@ -34,11 +40,14 @@ from lolgps_torch.cli import (
     ConfigFlags,
     Position,
     add_delay_argument,
+    add_gravity_argument,
     add_task_arguments,
     add_workers_argument,
     allow_for_delay,
     check_device,
+    compensate_gravity,
     detect_delay,
+    detect_gravity,
     read_offsets,
     run,
     scale_factor,
@@ -132,6 +141,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--resume", action="store_true", help="continue an interrupted run in --out"
     )
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    add_gravity_argument(parser)
     add_delay_argument(parser)
     add_workers_argument(parser)
     return parser.parse_args(argv)
@@ -173,6 +183,18 @@ def check_folder(folder: RunFolder, config: dict[str, Any], resume: bool) -> Non
     folder.check_writable()
 
 
+# config.json's and summary.json's note of a gravity compensation found missing
+GRAVITY_NOTE = "detected_gravity_compensation"
+
+
+def detected_gravity(args: argparse.Namespace, task: TaskConfig, folder: RunFolder) -> bool:
+    """Whether the run compensates gravity for the arm beyond the flags: on --resume as its
+    folder records, else as :func:`~lolgps_torch.cli.detect_gravity` finds."""
+    if args.resume:
+        return folder.read_config().get(GRAVITY_NOTE) == "none"
+    return detect_gravity(task, args.detect_gravity)
+
+
 def detected_delay(args: argparse.Namespace, task: TaskConfig, folder: RunFolder) -> float:
     """The command delay (s) the run allows for beyond the flags: on --resume the one its
     folder records, else the one :func:`~lolgps_torch.cli.detect_delay` estimates."""
@@ -212,12 +234,15 @@ def plan_run(args: argparse.Namespace) -> Plan:
                 print(note)
     conditions = list(task.placement.positions)
     urdf_text = arm_urdf(task)
+    noted: dict[str, Any] = {}
+    if detected_gravity(args, task, folder):  # before the delay's excitation, which it steadies
+        task = compensate_gravity(task)
+        noted[GRAVITY_NOTE] = "none"
     delay = detected_delay(args, task, folder)
-    noted = {}
     if delay > 0.0:
         task, local = allow_for_delay(task, stream.local, delay)
         stream = replace(stream, local=local)
-        noted = {"detected_delay": delay}
+        noted["detected_delay"] = delay
     config = as_stored(
         {
             "method": args.method,
@@ -294,7 +319,7 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
         summary = learner.run(plan.conditions, done)
     finally:
         bar.close()
-    detected = {k: v for k, v in plan.config.items() if k == "detected_delay"}
+    detected = {k: v for k, v in plan.config.items() if k in (GRAVITY_NOTE, "detected_delay")}
     folder.write_summary(
         {
             "method": plan.method,

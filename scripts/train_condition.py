@@ -7,8 +7,9 @@ Per iteration it prints and appends to OUT/metrics.jsonl: mean cost, mean and be
 tip distance, success rate, epsilon, eta and the time spent sampling, fitting and solving.
 OUT also gets config.json and arm.urdf (written once every flag, the folder and the hole's
 reachability are checked) and, at the end, summary.json. As in ``run_stream.py``, the arm's
-command delay is first estimated and allowed for (``--no-detect-delay``; config.json's
-``detected_delay``).
+gravity compensation is first checked and, where missing, made with the URDF's model
+(``--no-detect-gravity``; config.json's ``detected_gravity_compensation``), and its command
+delay estimated and allowed for (``--no-detect-delay``; config.json's ``detected_delay``).
 """
 
 from __future__ import annotations
@@ -21,11 +22,14 @@ import torch
 from lolgps_torch.cli import (
     ConfigFlags,
     add_delay_argument,
+    add_gravity_argument,
     add_task_arguments,
     add_workers_argument,
     allow_for_delay,
     check_device,
+    compensate_gravity,
     detect_delay,
+    detect_gravity,
     run,
     task_config,
     workers,
@@ -71,6 +75,7 @@ def parse_args() -> argparse.Namespace:
         help="stop once at least 3 of 5 samples (60%%) succeed",
     )
     parser.add_argument("--device", default="cpu")
+    add_gravity_argument(parser)
     add_delay_argument(parser)
     add_workers_argument(parser)
     args = parser.parse_args()
@@ -112,6 +117,9 @@ def main() -> None:
     if folder.has_config():
         raise LolgpsError(f"{folder.path} already holds a run; choose another --out")
     folder.check_writable()
+    uncompensated = detect_gravity(tcfg, args.detect_gravity)
+    if uncompensated:
+        tcfg = compensate_gravity(tcfg)
     delay = detect_delay(tcfg, args.detect_delay)
     if delay > 0.0:
         tcfg, config = allow_for_delay(tcfg, config, delay)
@@ -119,6 +127,7 @@ def main() -> None:
     task = PegTask(tcfg, config.samples, device=str(device), workers=workers(args))
     try:  # the placement has checked that the hole is reachable
         settings = {"hole": list(offset), "seed": args.seed, "iterations": args.iterations}
+        settings |= {"detected_gravity_compensation": "none"} if uncompensated else {}
         settings |= {"detected_delay": delay} if delay > 0.0 else {}
         placed = replace(tcfg, placement=pinned(tcfg.placement, task.geometry))
         record = {**settings, "task": task_json(placed, urdf_text), "local": asdict(config)}

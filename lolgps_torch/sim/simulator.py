@@ -29,9 +29,11 @@ from dataclasses import dataclass
 from typing import Literal, NamedTuple, Protocol
 
 import numpy as np
+import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError, NumericalError
+from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.plant import (
     NOMINAL_PLANT,
@@ -65,6 +67,9 @@ class WorldConfig:
     :param known_delay: the command delay (s) the learner allows for, whole physics steps: the
         state carries the actions of the last ceil(d / dt) control steps and the arm's model
         acts on each command d late (set it to the arm's latency)
+    :param compensate_gravity: the learner adds its own model's gravity torque
+        ``g_URDF(q)`` (the URDF's rigid-body inverse dynamics at rest, at the observed joint
+        angles) to every command it sends, for an arm that does not compensate gravity itself
     """
 
     dt: float = 0.05
@@ -81,6 +86,7 @@ class WorldConfig:
     damping_margin: float = 1.0
     max_joint_speed: float = 100.0
     known_delay: float = 0.0
+    compensate_gravity: bool = False
 
     def __post_init__(self) -> None:
         positive = {
@@ -184,7 +190,11 @@ class World(ABC):
     The joint torque sent at every physics step is ``clip(u + g(q), -effort, effort)``, where
     ``g(q)`` is the gravity-compensation torque (inverse dynamics at zero velocity and
     acceleration) evaluated at the start of the control step, as a torque-controlled arm's own
-    gravity compensation would.  Only the peg collides with the table and the hole.
+    gravity compensation would.  With ``WorldConfig.compensate_gravity`` the learner adds its
+    own model's ``g_URDF(q~)`` (:meth:`learner_compensation`, at the observed angles ``q~``)
+    to every command as it is issued, so the torque is ``clip(u + g_URDF(q~) + g(q), ...)``,
+    ``u`` still a torque over model-based compensation.  Only the peg collides with the table
+    and the hole.
 
     :param arm: the arm. :param config: simulation and hole geometry.
     :param nominal_mouth: the hole's mouth at offset zero (world, m).
@@ -215,6 +225,8 @@ class World(ABC):
         self._queue = np.zeros((self.delay, arm.dof))  # commands issued, not yet acting
         self._issued = np.zeros((config.history, arm.dof))  # the last commands, newest first
         self._noise: np.random.Generator | None = None
+        self._observed_q = np.zeros(arm.dof)  # the joint angles the last observation gave
+        self._model: ArmDynamics | None = None  # the learner's, built when first needed
 
     # the engine's primitives
 
@@ -295,6 +307,7 @@ class World(ABC):
             scale = self.plant.obs_noise
             q = q + self._noise.normal(0.0, scale, q.shape)
             qd = qd + self._noise.normal(0.0, VELOCITY_NOISE_RATIO * scale, qd.shape)
+        self._observed_q = q
         return np.concatenate([q, qd, pts, vel, self._issued.reshape(-1)])
 
     def step(self, u: np.ndarray) -> np.ndarray:
@@ -312,16 +325,32 @@ class World(ABC):
         if not np.all(np.isfinite(u)):
             raise NumericalError("non-finite action: the controller produced NaN or inf torques")
         g = self.gravity_compensation()
+        if self.config.compensate_gravity:  # the learner's own, sent with the command
+            own = self.learner_compensation()
+            sent, g_total = u + own, g + own
+        else:
+            sent, g_total = u, g
         held = np.empty((self.delay + substeps, len(u)))
         held[: self.delay] = self._queue
-        held[self.delay :] = u
+        held[self.delay :] = sent
         self._queue = held[substeps:]
         # the commands as they act (within the effort limits): past commands beyond them
         # would grow without bound under a controller that feeds them back
-        acting = np.clip(u + g, -self.effort, self.effort) - g
+        acting = np.clip(u + g_total, -self.effort, self.effort) - g_total
         self._issued = np.concatenate([acting[None], self._issued])[: len(self._issued)]
         self._prev_points = self._points
         return np.clip(held[:substeps] + g, -self.effort, self.effort)
+
+    def learner_compensation(self) -> np.ndarray:
+        """``g_URDF(q~) [dof]``: the gravity torque of the learner's rigid-body model of the
+        arm (:class:`~lolgps_torch.robot.rigid_body.ArmDynamics`, the URDF as PyBullet loads
+        it), ``RNEA(q~, 0, 0)`` at the joint angles ``q~`` the last observation gave (sensor
+        noise included): what the learner adds to its commands with
+        ``WorldConfig.compensate_gravity``.  The plant's parameters are not read."""
+        if self._model is None:
+            self._model = ArmDynamics(self.arm, self.config.gravity, "pybullet")
+        q = torch.from_numpy(np.asarray(self._observed_q, dtype=np.float64))
+        return self._model.gravity_torque(q).numpy()
 
     @classmethod
     def step_together(cls, worlds: Sequence[World], u: np.ndarray) -> np.ndarray:
