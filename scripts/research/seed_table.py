@@ -124,24 +124,31 @@ def print_tables(groups: dict[tuple[str, str], list[SeedRow]]) -> None:
 
 
 def plot(groups: dict[tuple[str, str], list[SeedRow]], path: str) -> None:
-    """Each seed's average final success and worst area 0-4, per arm and label."""
+    """Each seed's average final success, worst area 0-4 and farthest test rollout, per arm
+    and label."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 0.6 * len(groups) + 1.6), sharey=True)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 0.6 * len(groups) + 1.6), sharey=True)
     names = [f"{arm}, {label}" for arm, label in groups]
     for i, rows in enumerate(groups.values()):
-        for ax, values in zip(axes, ([r.average for r in rows], [r.worst_area / 100 for r in rows]),
-                              strict=True):  # fmt: skip
+        panels = (
+            [r.average for r in rows],
+            [r.worst_area / 100 for r in rows],
+            [r.worst_distance for r in rows],
+        )
+        for ax, values in zip(axes, panels, strict=True):
             ax.scatter(values, [i] * len(values), alpha=0.6)
             ax.plot([statistics.mean(values)], [i], "k|", markersize=14)
     axes[0].set_yticks(range(len(names)), names)
     axes[0].set_xlabel("average final success, areas 0-6 (one dot per seed; bar: mean)")
     axes[1].set_xlabel("worst of areas 0-4 after the stage")
-    for ax in axes:
+    axes[2].set_xlabel("farthest test rollout from its hole (m)")
+    for ax in axes[:2]:
         ax.set_xlim(-0.02, 1.02)
+    for ax in axes:
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
