@@ -18,7 +18,7 @@ from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.gravity import MARGIN, GravityConfig, estimate_gravity, let_go
-from lolgps_torch.sim.plant import PlantConfig
+from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
 
@@ -36,6 +36,20 @@ def arm(request: pytest.FixtureRequest) -> ArmSpec:
 def _start(arm: ArmSpec) -> np.ndarray:
     """A pose off the middle of the joints' limits, where gravity pulls every arm here."""
     return np.asarray(arm.lower) * 0.45 + np.asarray(arm.upper) * 0.55
+
+
+def _let_go(
+    arm: ArmSpec, config: WorldConfig, plant: PlantConfig = NOMINAL_PLANT
+) -> tuple[np.ndarray, np.ndarray]:
+    """The probe's states let go at :func:`_start` in a world of ``plant``, and the joints'
+    effective inertias there."""
+    world = PegWorld(arm, config, FAR, plant=plant)
+    try:
+        world.set_hole((0.0, 0.0))
+        q0 = _start(arm)
+        return let_go(world, q0, GravityConfig()), world.effective_inertia(q0.tolist()).numpy()
+    finally:
+        world.close()
 
 
 @pytest.mark.parametrize(
@@ -57,14 +71,7 @@ def test_the_probe_finds_whether_the_arm_compensates_gravity(
     predicts and the compensated one stays put, with a clear margin either way: also with a
     payload or other inertias the plant does not tell, sensor noise and late commands."""
     config = WorldConfig()
-    world = PegWorld(arm, config, FAR, plant=plant)
-    try:
-        world.set_hole((0.0, 0.0))
-        q0 = _start(arm)
-        states = let_go(world, q0, GravityConfig())
-        inertia = world.effective_inertia(q0.tolist()).numpy()
-    finally:
-        world.close()
+    states, inertia = _let_go(arm, config, plant)
     estimate = estimate_gravity(states, arm, config, inertia)
     assert estimate.conclusive  # one residual under 1 / MARGIN of the other
     assert estimate.compensated == (plant.gravity_compensation != "none")
@@ -77,22 +84,10 @@ def test_speeds_neither_hypothesis_explains_are_taken_as_compensated() -> None:
     explains better than the other: inconclusive, taken as compensated."""
     arm = load_arm(KUKA)
     config = WorldConfig()
-    world = PegWorld(arm, config, FAR)
-    try:
-        world.set_hole((0.0, 0.0))
-        q0 = _start(arm)
-        states = let_go(world, q0, GravityConfig())
-        inertia = world.effective_inertia(q0.tolist()).numpy()
-    finally:
-        world.close()
+    states, inertia = _let_go(arm, config)
+    fall, _ = _let_go(arm, config, UNCOMPENSATED)
     lay = config.layout(arm.dof)
     drift = states.copy()  # half way between rest and the model's fall
-    falling = PegWorld(arm, config, FAR, plant=UNCOMPENSATED)
-    try:
-        falling.set_hole((0.0, 0.0))
-        fall = let_go(falling, q0, GravityConfig())
-    finally:
-        falling.close()
     drift[..., lay.qd] = (states[..., lay.qd] + fall[..., lay.qd]) / 2
     estimate = estimate_gravity(drift, arm, config, inertia)
     assert estimate.compensated and not estimate.conclusive
