@@ -82,6 +82,7 @@ STREAM_FLAGS = ConfigFlags(
         "guard-torque": ("policy.guard_torque",),
         "guard-speed": ("policy.guard_speed",),
         "guard-window": ("policy.guard_window",),
+        "guard-retreat": ("policy.guard_retreat",),
         "guard-brake": ("policy.guard_brake",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),

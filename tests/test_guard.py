@@ -1,5 +1,6 @@
-"""The policy's guard: bounds and brake fitted to a known system, its latch in the actor, and
-its round trip through a checkpoint."""
+"""The policy's guard: bounds and brake fitted to a known system, the brake acting while a
+bound is passed, the retreat tracked per rollout in the actor, and the guard's round trip
+through a checkpoint."""
 
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ def _known_system(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
 
 def test_the_brake_inverts_the_fitted_response() -> None:
     x, u, B = _known_system()
-    guard = fit_guard(x, u, 2.0 * u, LAYOUT.qd, 1.3, 1.2, None, 0.5)
+    guard = fit_guard(x, u, 2.0 * u, LAYOUT, 1.3, 1.2, None, None, 0.5)
     assert torch.allclose(guard.brake, -0.5 * torch.linalg.inv(B), atol=1e-9)
     assert torch.allclose(guard.torque, 1.3 * 2.0 * u.abs().amax((0, 1)))
     assert torch.allclose(guard.speed, 1.2 * x[..., LAYOUT.qd].abs().amax((0, 1))[None])
@@ -44,7 +45,7 @@ def test_without_a_torque_margin_torques_are_unbounded() -> None:
     x, u, _ = _known_system()
     teacher = u.clone()
     teacher[:, :, 1] = 0.0  # a joint its teachers never pushed stays unbounded too (no 0 * inf)
-    guard = fit_guard(x, u, teacher, LAYOUT.qd, None, 3.0, None, 0.5)
+    guard = fit_guard(x, u, teacher, LAYOUT, None, 3.0, None, None, 0.5)
     assert torch.isinf(guard.torque).all() and (guard.torque > 0).all()
     assert torch.allclose(guard.speed, 3.0 * x[..., LAYOUT.qd].abs().amax((0, 1))[None])
 
@@ -56,66 +57,103 @@ def test_the_trip_speeds_follow_the_data_step_by_step() -> None:
     x, u, _ = _known_system()
     speeds = x[..., LAYOUT.qd].abs()  # [M, T+1, n]
     for window in (0, 2, 5):
-        guard = fit_guard(x, u, u, LAYOUT.qd, None, 2.0, window, 0.5)
+        guard = fit_guard(x, u, u, LAYOUT, None, 2.0, window, None, 0.5)
         assert guard.speed.shape == speeds.shape[1:]
         for t in range(speeds.shape[1]):
             near = speeds[:, max(0, t - window) :]
             torch.testing.assert_close(guard.speed_at(t), 2.0 * near.amax((0, 1)))
-    whole = fit_guard(x, u, u, LAYOUT.qd, None, 2.0, x.shape[1], 0.5)
-    every = fit_guard(x, u, u, LAYOUT.qd, None, 2.0, None, 0.5)
+    whole = fit_guard(x, u, u, LAYOUT, None, 2.0, x.shape[1], None, 0.5)
+    every = fit_guard(x, u, u, LAYOUT, None, 2.0, None, None, 0.5)
     for t in range(x.shape[1] + 3):  # past the last row: the last row
         torch.testing.assert_close(whole.speed_at(t), every.speed_at(t))
 
 
-def test_the_guard_bounds_torques_and_brakes_once_tripped() -> None:
+def test_the_retreat_is_the_datas_largest_plus_the_margin() -> None:
+    """rho = margin + the largest rise of a rollout's tip distance above its smallest so far
+    (written out by loops here); no margin: no retreat trips the brake."""
+    x, u, _ = _known_system()
+    g = torch.Generator().manual_seed(3)
+    x[..., LAYOUT.points] = torch.randn(*x.shape[:2], 6, dtype=F64, generator=g)
+    distance = x[..., LAYOUT.points][..., :3].norm(dim=-1)
+    largest = max(
+        float(distance[m, t] - distance[m, : t + 1].min())
+        for m in range(x.shape[0])
+        for t in range(x.shape[1])
+    )
+    guard = fit_guard(x, u, u, LAYOUT, None, 2.0, 3, 0.05, 0.5)
+    torch.testing.assert_close(guard.retreat, torch.tensor(largest + 0.05, dtype=F64))
+    assert torch.isinf(fit_guard(x, u, u, LAYOUT, None, 2.0, 3, None, 0.5).retreat)
+
+
+def _states(qd: list[list[float]], distance: list[float]) -> torch.Tensor:
+    """States with joint speeds ``qd`` and the tip ``distance`` (m) from its target along z."""
+    x = torch.zeros(len(qd), LAYOUT.dX, dtype=F64)
+    x[:, LAYOUT.qd] = torch.tensor(qd, dtype=F64)
+    x[:, LAYOUT.points.start + 2] = torch.tensor(distance, dtype=F64)
+    return x
+
+
+def test_the_guard_bounds_torques_and_brakes_while_a_bound_is_passed() -> None:
     guard = Guard(
         torch.tensor([1.0, 2.0], dtype=F64),
         torch.tensor([[1.0, 1.0]], dtype=F64),
         -torch.eye(2, dtype=F64),
+        torch.tensor(0.1, dtype=F64),
     )
-    u = torch.tensor([[5.0, -5.0], [0.5, 0.5], [0.5, 0.5]], dtype=F64)
-    qd = torch.tensor([[0.0, 0.0], [0.5, 1.5], [0.5, 0.5]], dtype=F64)
-    before = torch.tensor([False, False, True])
-    out, tripped = guarded(u, qd, guard, before, 0)
-    assert tripped.tolist() == [False, True, True]  # a speed past its bound, or tripped before
-    assert out.tolist() == [[1.0, -2.0], [-0.5, -1.5], [-0.5, -0.5]]
-    assert torch.equal(guarded(u, qd, Guard.off(2), torch.zeros(3, dtype=torch.bool), 0)[0], u)
-    # per-step trip speeds: the same speeds pass at step 0 and trip at step 1
+    u = torch.tensor([[5.0, -5.0], [0.5, 0.5], [0.5, 0.5], [0.5, 0.5]], dtype=F64)
+    x = _states([[0.0, 0.0], [0.5, 1.5], [0.5, 0.5], [0.5, 0.5]], [0.3, 0.3, 0.3, 0.3])
+    closest = torch.tensor([torch.inf, torch.inf, 0.15, 0.25], dtype=F64)
+    out, nearest = guarded(u, x, LAYOUT, closest, guard, 0)
+    # row 0 is clipped; row 1 passes a speed; row 2 has retreated 0.15 m > 0.1 m; row 3 0.05 m
+    assert out.tolist() == [[1.0, -2.0], [-0.5, -1.5], [-0.5, -0.5], [0.5, 0.5]]
+    assert nearest.tolist() == [0.3, 0.3, 0.15, 0.25]
+    # nothing is latched: a slow state near its closest approach acts again
+    slow = _states([[0.5, 0.5]] * 4, [0.2] * 4)
+    assert torch.equal(guarded(u, slow, LAYOUT, nearest, guard, 1)[0][1:], u[1:])
+    off = Guard.off(2)
+    assert torch.equal(guarded(u, x, LAYOUT, closest, off, 0)[0], u)
+    # per-step trip speeds: the same speeds pass at step 0 and brake at step 1
     stepped = guard._replace(speed=torch.tensor([[2.0, 2.0], [1.0, 1.0]], dtype=F64))
-    fresh = torch.zeros(3, dtype=torch.bool)
-    assert guarded(u, qd, stepped, fresh, 0)[1].tolist() == [False, False, False]
-    assert guarded(u, qd, stepped, fresh, 1)[1].tolist() == [False, True, False]
-    assert guarded(u, qd, stepped, fresh, 7)[1].tolist() == [False, True, False]
+    fresh = torch.full((4,), torch.inf, dtype=F64)
+    assert torch.equal(guarded(u, x, LAYOUT, fresh, stepped, 0)[0][1], u[1])
+    for t in (1, 7):
+        assert torch.equal(
+            guarded(u, x, LAYOUT, fresh, stepped, t)[0][1], torch.tensor([-0.5, -1.5], dtype=F64)
+        )
 
 
-def test_the_actor_latches_per_rollout_and_resets_at_the_start(tmp_path: Path) -> None:
+def test_the_actor_tracks_each_rollouts_closest_approach(tmp_path: Path) -> None:
     policy = GaussianPolicy(LAYOUT.dX, LAYOUT.dU)
     policy.set_guard(Guard(torch.full((2,), 1e6, dtype=F64), torch.ones(1, 2, dtype=F64),
-                           -torch.eye(2, dtype=F64)))  # fmt: skip
+                           -torch.eye(2, dtype=F64), torch.tensor(0.05, dtype=F64)))  # fmt: skip
     actor = policy_actor(policy)
-    fast = torch.zeros(2, LAYOUT.dX, dtype=F64)
-    fast[0, LAYOUT.qd] = 3.0  # rollout 0 trips the brake, rollout 1 does not
-    slow = torch.zeros(2, LAYOUT.dX, dtype=F64)
-    actor(0, fast, slice(0, 2))
-    held = actor(1, slow, slice(0, 2))
-    assert torch.equal(held[0], torch.zeros(2, dtype=F64))  # braking at rest: no torque
-    assert not torch.equal(held[1], held[0])  # the other rollout still acts
-    assert not actor(0, slow, slice(0, 2))[0].eq(0).all()  # a new rollout starts untripped
+    near, far = _states([[0.0, 0.0]] * 2, [0.1, 0.1]), _states([[0.0, 0.0]] * 2, [0.1, 0.2])
+    actor(0, near, slice(0, 2))
+    held = actor(1, far, slice(0, 2))
+    assert torch.equal(held[1], torch.zeros(2, dtype=F64))  # 0.1 m back from 0.1: braking at rest
+    assert not held[0].eq(0).all()  # the other rollout still acts
+    assert not actor(0, far, slice(0, 2))[1].eq(0).all()  # a new rollout starts afresh
+    fast = _states([[3.0, 0.0], [0.0, 0.0]], [0.1, 0.1])
+    assert torch.equal(actor(1, fast, slice(0, 2))[0], torch.tensor([-3.0, 0.0], dtype=F64))
     # the actor crosses to worker processes, and the guard is saved with the policy
     assert isinstance(pickle.loads(pickle.dumps(actor)), type(actor))
     save_policy(tmp_path, policy)
     loaded = load_policy(tmp_path)
     for a, b in zip(loaded.guard, policy.guard, strict=True):
         assert torch.equal(a, b)
-    # per-step trip speeds round-trip too, and a policy saved with one speed per joint (before
-    # per-step speeds) loads as one row for every step
+    # per-step trip speeds round-trip too; a policy saved with one speed per joint (before
+    # per-step speeds) loads as one row for every step, and one saved without a retreat
+    # (before the retreat trip) with none
     per_step = torch.linspace(1.0, 2.0, 12, dtype=F64).reshape(6, 2)
     policy.set_guard(policy.guard._replace(speed=per_step))
     save_policy(tmp_path / "steps", policy)
     assert torch.equal(load_policy(tmp_path / "steps").guard.speed, per_step)
-    state = {**policy.state_dict(), "guard_speed": torch.ones(2, dtype=F64)}
-    old = GaussianPolicy.from_state(policy.description(), state)
+    state = {k: v for k, v in policy.state_dict().items() if k != "guard_retreat"}
+    old = GaussianPolicy.from_state(
+        policy.description(), {**state, "guard_speed": torch.ones(2, dtype=F64)}
+    )
     assert torch.equal(old.guard.speed, torch.ones(1, 2, dtype=F64))
+    assert torch.isinf(old.guard.retreat)
 
 
 def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
@@ -132,7 +170,7 @@ def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
     layout = StateLayout(dU)
     brake = torch.randn(dU, dU, dtype=F64, generator=g)
     policy.set_guard(Guard(torch.full((dU,), 50.0, dtype=F64), torch.full((1, dU), 2.0, dtype=F64),
-                           brake))  # fmt: skip
+                           brake, torch.tensor(0.05, dtype=F64)))  # fmt: skip
     x = torch.randn(n, dX, dtype=F64, generator=g)
     x[::3, layout.qd] *= 4.0  # rows 0, 3, 6, 9 trip the brake
     noise = torch.randn(n, 3, dU, dtype=F64, generator=g)

@@ -26,6 +26,7 @@ from lolgps_torch.data.replay import ConditionRecord
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, distill
 from lolgps_torch.policy.guard import Guard, fit_guard
 from lolgps_torch.policy.sstep import intra_op_threads
+from lolgps_torch.state import StateLayout
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import (
     ConditionSamples,
@@ -36,9 +37,9 @@ from lolgps_torch.types import (
 )
 
 
-def guard_of(data: list[ConditionSamples], qd: slice, cfg: PolicyConfig) -> Guard | None:
+def guard_of(data: list[ConditionSamples], layout: StateLayout, cfg: PolicyConfig) -> Guard | None:
     """The guard :func:`fit_guard` fits to the conditions' D_g ``data`` (None where none holds
-    a full rollout), with ``cfg``'s margins; ``qd`` is the state's joint-speed slice."""
+    a full rollout; states as ``layout`` says), with ``cfg``'s margins."""
     full = [d for d in data if d.final_state is not None and d.x.shape[0] > 0]
     if not full:
         return None
@@ -46,8 +47,8 @@ def guard_of(data: list[ConditionSamples], qd: slice, cfg: PolicyConfig) -> Guar
     u, mean_cur = torch.cat([d.u for d in full]), torch.cat([d.mean_cur for d in full])
     with intra_op_threads(cfg.num_threads):  # as the S-step: the same bits in any process
         return fit_guard(
-            x, u, mean_cur, qd, cfg.guard_torque, cfg.guard_speed, cfg.guard_window,
-            cfg.guard_brake,
+            x, u, mean_cur, layout, cfg.guard_torque, cfg.guard_speed, cfg.guard_window,
+            cfg.guard_retreat, cfg.guard_brake,
         )  # fmt: skip
 
 
@@ -176,7 +177,7 @@ class Distiller:
 
     def _set_guard(self, policy: GaussianPolicy, data: list[ConditionSamples]) -> None:
         """The policy's guard from every condition's D_g (:func:`guard_of`)."""
-        guard = guard_of(data, self.task.layout.qd, self.config)
+        guard = guard_of(data, self.task.layout, self.config)
         if guard is not None:
             policy.set_guard(guard)
 

@@ -5,16 +5,23 @@ times the largest torque its teachers ever gave, flinging the arm a metre or mor
 keeps the policy inside what its teachers did, with bounds fitted to every condition's D_g:
 
     u_t = clip(mu_theta(x_t) (+ noise), -tau, tau)      tau_j = torque_margin max |mu_cur,j|
-    once |q-dot_j(t)| > v_j(t) for some joint, and for the rest of the rollout:
+    while |q-dot_j(t)| > v_j(t) for some joint, or d_t - min_{s <= t} d_s > rho:
         u_t = clip(-beta B^-1 q-dot_t, -tau, tau)
     v_j(t) = speed_margin max_{m, s >= t - w} |q-dot_j^m(s)|
+    rho = retreat_margin + max_{m, t} (d^m_t - min_{s <= t} d^m_s)
 
 (tau_j infinite unless a torque margin is given: the bound cost reaches to far holes and kept
-the brake from stopping a flung arm). The trip speed at step t is the largest speed D_g still
-reaches from ``w`` steps before t on (``w`` None: one speed for every step, the largest in D_g):
-while the arm moves in it is the teachers' largest, and once they have slowed down to insert,
-theirs from then on. A policy that misses a far hole comes to rest at the plate and is flung
-from there, long after it passed the largest speeds its teachers reached while moving in.
+the brake from stopping a flung arm; d_t = |p_tip - p*_tip| the tip's distance from its
+target). The trip speed at step t is the largest speed D_g still reaches from ``w`` steps
+before t on (``w`` None: one speed for every step, the largest in D_g): while the arm moves in
+it is the teachers' largest, and once they have slowed down to insert, theirs from then on. A
+policy that misses a far hole comes to rest at the plate and is flung from there, long after
+it passed the largest speeds its teachers reached while moving in. The brake acts only while a
+speed is past its bound: a policy that heads for a far hole faster than its teachers did is
+slowed down, not stopped where it is (stopped, it would hang in the air, further from the hole
+than it started). The retreat rho stops what the speeds miss, a slow rise away from the hole
+late in the rollout: the teachers never move the tip away from their closest approach by more
+than a few millimetres, and the brake then holds for as long as the tip stays away.
 
 with ``B`` the arm's response to a torque over one control step fitted to D_g's transitions by
 least squares, ``q-dot_{t+1} - q-dot_t ~ B u_t + c``: the brake takes ``beta`` of the joint
@@ -32,22 +39,26 @@ import torch
 from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.state import StateLayout
 
 
 class Guard(NamedTuple):
     """Torque bounds ``tau [dU]``, the speeds ``v [S, dU]`` that trip the brake (row ``t`` at
-    step ``t``, the last row from there on: ``S = 1`` is one speed for every step) and the
-    brake's gain ``-beta B^-1``, ``[dU, dU]`` (module docstring)."""
+    step ``t``, the last row from there on: ``S = 1`` is one speed for every step), the
+    brake's gain ``-beta B^-1``, ``[dU, dU]``, and the tip's retreat ``rho`` (m, a 0-d tensor;
+    inf: none) that trips it (module docstring)."""
 
     torque: Tensor
     speed: Tensor
     brake: Tensor
+    retreat: Tensor
 
     @classmethod
     def off(cls, dU: int, device: torch.device | str = "cpu") -> Guard:
         """A guard that never acts: unbounded torques and speeds."""
         inf = torch.full((dU,), float("inf"), dtype=torch.float64, device=device)
-        return cls(inf, inf[None].clone(), torch.zeros(dU, dU, dtype=torch.float64, device=device))
+        zeros = torch.zeros(dU, dU, dtype=torch.float64, device=device)
+        return cls(inf, inf[None].clone(), zeros, inf[0].clone())
 
     def speed_at(self, t: int) -> Tensor:
         """The trip speeds at step ``t``, ``[dU]``."""
@@ -58,20 +69,21 @@ def fit_guard(
     x: Tensor,
     u: Tensor,
     mean_cur: Tensor,
-    qd: slice,
+    layout: StateLayout,
     torque_margin: float | None,
     speed_margin: float,
     window: int | None,
+    retreat_margin: float | None,
     beta: float,
 ) -> Guard:
     """The guard of rollouts with states ``x: [M, T+1, dX]`` (``x_T`` the state after the last
-    action), actions ``u: [M, T, dU]`` and teacher means ``mean_cur: [M, T, dU]``; ``qd`` is
-    the state's joint-speed slice (M >= 1); ``torque_margin`` None leaves torques unbounded;
+    action; its blocks as ``layout`` says), actions ``u: [M, T, dU]`` and teacher means
+    ``mean_cur: [M, T, dU]`` (M >= 1); ``torque_margin`` None leaves torques unbounded;
     ``window`` the steps before t from which on D_g's largest speed sets step t's trip speed
-    (None: over every step)."""
+    (None: over every step); ``retreat_margin`` None: no retreat trips the brake."""
     if x.shape[0] == 0:
         raise LolgpsError("the policy's guard needs at least one rollout")
-    speeds = x[..., qd]  # [M, T+1, n]
+    speeds = x[..., layout.qd]  # [M, T+1, n]
     change = (speeds[:, 1:] - speeds[:, :-1]).flatten(0, 1)  # [M T, n]
     actions = u.flatten(0, 1)
     design = torch.cat([actions, torch.ones_like(actions[:, :1])], dim=1)  # [M T, dU + 1]
@@ -90,21 +102,32 @@ def fit_guard(
         onward = per_step.flip(0).cummax(0).values.flip(0)  # max over s >= t
         start = (torch.arange(per_step.shape[0]) - window).clamp(min=0)
         envelope = onward[start]  # max over s >= t - window, [T+1, n]
-    return Guard(torque, speed_margin * envelope, -beta * torch.linalg.inv(B))
+    distance = tip_distance(x, layout)  # [M, T+1]
+    retreat = (distance - distance.cummin(1).values).amax()
+    retreat = retreat + (math.inf if retreat_margin is None else retreat_margin)
+    return Guard(torque, speed_margin * envelope, -beta * torch.linalg.inv(B), retreat)
+
+
+def tip_distance(x: Tensor, layout: StateLayout) -> Tensor:
+    """``d = |p_tip - p*_tip|`` of states ``x: [..., dX]`` -> ``[...]``."""
+    return x[..., layout.points][..., :3].norm(dim=-1)
 
 
 def guarded(
     u: Tensor,
-    qd: Tensor,
+    x: Tensor,
+    layout: StateLayout,
+    closest: Tensor,
     guard: Guard,
-    tripped: Tensor,
     t: int,
     product: Callable[[Tensor, Tensor], Tensor] = lambda x, A: x @ A.T,
 ) -> tuple[Tensor, Tensor]:
-    """Actions ``u: [n, dU]`` at step ``t`` and joint speeds ``qd: [n, dU]`` through the guard,
-    given which rollouts had ``tripped`` it before (``[n]`` bool); returns the actions and the
-    new ``tripped``. ``product(x, A)`` is ``x @ A^T`` (a row-wise form of it for lockstep
-    rollouts)."""
-    tripped = tripped | (qd.abs() > guard.speed_at(t)).any(-1)
-    held = torch.where(tripped[:, None], product(qd, guard.brake), u)
-    return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), tripped
+    """Actions ``u: [n, dU]`` at step ``t`` and states ``x: [n, dX]`` (blocks as ``layout``)
+    through the guard, given each rollout's closest approach to its target before ``t``
+    (``closest [n]``, m; inf at the start); returns the actions and the closest approach up
+    to ``t``. ``product(x, A)`` is ``x @ A^T`` (a row-wise form of it for lockstep rollouts)."""
+    qd, distance = x[..., layout.qd], tip_distance(x, layout)
+    closest = torch.minimum(closest, distance)
+    braking = (qd.abs() > guard.speed_at(t)).any(-1) | (distance - closest > guard.retreat)
+    held = torch.where(braking[:, None], product(qd, guard.brake), u)
+    return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest

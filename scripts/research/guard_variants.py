@@ -1,8 +1,8 @@
 """Evaluate finished runs again under other guard settings, to see what the guard costs and saves.
 
     python scripts/research/guard_variants.py SWEEP_OR_RUN ... --out DIR [--speed V]
-                                              [--window W] [--torque T | --no-torque] [--off]
-                                              [--workers N]
+                                              [--window W] [--retreat R]
+                                              [--torque T | --no-torque] [--off] [--workers N]
 
 Each evaluated run folder (a sweep folder stands for every evaluated run in it) is copied to
 ``DIR/<run name>`` without its replay, its stage checkpoints' guards re-set, and evaluated on
@@ -13,8 +13,11 @@ D_g's largest joint speeds, ``--torque T`` bounds torques at T times the largest
 torque, ``--no-torque`` leaves them unbounded, ``--off`` turns the whole guard off.
 ``--window W`` fits the trip speeds step by step instead, to the run's replay (the D_g of the
 conditions up to each checkpoint), at ``--speed`` times (default: the run's margin) D_g's
-largest speed from W steps before each step on. The brake gain stays the run's. The policies themselves are the runs' own, so only acting
-changes; compare with ``scripts/research/seed_table.py RUNS DIR --label trained variant``.
+largest speed from W steps before each step on. ``--retreat R`` fits the retreat that trips the
+brake to the replay as well, R metres beyond D_g's largest (a run trained before the retreat
+trip has none). The brake gain stays the run's. The policies themselves are the runs' own, so
+only acting (by this checkout's guard) changes; compare with
+``scripts/research/seed_table.py RUNS DIR --label trained variant``.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ def parse_args() -> argparse.Namespace:
     torque.add_argument("--torque", type=float, default=None, help="bound, in teacher torques")
     torque.add_argument("--no-torque", action="store_true", help="torques unbounded")
     parser.add_argument("--window", type=int, default=None, help="per-step trip speeds")
+    parser.add_argument("--retreat", type=float, default=None, help="retreat trip margin (m)")
     parser.add_argument("--off", action="store_true", help="no guard at all")
     parser.add_argument("--workers", type=int, default=2, help="evaluation processes")
     args = parser.parse_args()
@@ -58,6 +62,8 @@ def parse_args() -> argparse.Namespace:
         value = getattr(args, name)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise LolgpsError(f"--{name} must be a positive number, got {value}")
+    if args.retreat is not None and not 0.0 <= args.retreat < math.inf:
+        raise LolgpsError(f"--retreat must be a distance >= 0 (m), got {args.retreat}")
     if args.window is not None and args.window < 0:
         raise LolgpsError(f"--window must be at least 0, got {args.window}")
     if args.workers < 1:
@@ -73,17 +79,24 @@ def reguarded(
     trip speeds fitted per step to the D_g ``data``."""
     if args.off:
         return Guard.off(guard.torque.shape[0], guard.torque.device)
-    if args.window is not None:
-        margin = args.speed or trained["guard_speed"]
-        config = PolicyConfig(guard_speed=margin, guard_window=args.window)
-        stepped = guard_of(data, StateLayout(guard.torque.shape[0]).qd, config)
-        if stepped is None:
-            raise LolgpsError("--window: a checkpoint's conditions hold no stored rollout")
-        speed = stepped.speed
+    fitted = None
+    if args.window is not None or args.retreat is not None:
+        kept = trained.get("guard_window")  # the run's window where no new one is asked for
+        window = args.window if args.window is not None else None if kept is None else int(kept)
+        config = PolicyConfig(
+            guard_speed=args.speed or trained["guard_speed"], guard_window=window,
+            guard_retreat=args.retreat,
+        )  # fmt: skip
+        fitted = guard_of(data, StateLayout(guard.torque.shape[0]), config)
+        if fitted is None:
+            raise LolgpsError("--window, --retreat: a checkpoint's conditions hold no rollout")
+    if args.window is not None and fitted is not None:
+        speed = fitted.speed
     elif args.speed:
         speed = guard.speed * (args.speed / trained["guard_speed"])
     else:
         speed = guard.speed
+    retreat = guard.retreat if args.retreat is None or fitted is None else fitted.retreat
     if args.no_torque:
         torque = torch.full_like(guard.torque, math.inf)
     elif args.torque:
@@ -92,7 +105,7 @@ def reguarded(
         torque = guard.torque * (args.torque / trained["guard_torque"])
     else:
         torque = guard.torque
-    return Guard(torque, speed, guard.brake)
+    return Guard(torque, speed, guard.brake, retreat)
 
 
 def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None:
@@ -102,7 +115,8 @@ def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None
         raise LolgpsError(f"{source}: its policies were trained without a guard")
     shutil.rmtree(target, ignore_errors=True)
     shutil.copytree(source, target, ignore=shutil.ignore_patterns(REPLAY_FILE, EVAL_FILE, "*.png"))
-    records = load_run(source).records if args.window is not None else []
+    refit = args.window is not None or args.retreat is not None
+    records = load_run(source).records if refit else []
     for checkpoint in sorted((target / "checkpoints").iterdir()):
         policy = load_policy(checkpoint)
         last = int(checkpoint.name.rsplit("_", 1)[-1]) if records else -1
