@@ -112,7 +112,6 @@ class TaskConfig:
         for name, kind in parts:
             if not isinstance(getattr(self, name), kind):
                 raise LolgpsError(f"task {name} settings must be a {kind.__name__}")
-        self.plant.delay_steps(self.world.dt / self.world.substeps)
         if self.sim not in ("pybullet", "mujoco"):
             raise LolgpsError(f"--sim must be pybullet or mujoco, got {self.sim!r}")
         if self.mjcf and self.sim != "mujoco":

@@ -96,7 +96,8 @@ def test_gravity_compensation(arm: ArmSpec, worlds: list[PegWorld]) -> None:
 
 def test_action_delay_is_the_commands_shifted(arm: ArmSpec, worlds: list[PegWorld]) -> None:
     """A delay of one control step acts as the undelayed world given (0, u_0, u_1, ...); one of a
-    physics step as PyBullet stepped by hand with each command held one physics step late."""
+    physics step, or a fraction of one, as PyBullet stepped by hand with each physics step's
+    torque the mean over that step of the commands shifted by the delay."""
     q0 = np.asarray(arm.lower) * 0.5 + np.asarray(arm.upper) * 0.5
     rng = np.random.default_rng(0)
     commands = rng.normal(0.0, 5.0, (4, arm.dof))
@@ -106,25 +107,42 @@ def test_action_delay_is_the_commands_shifted(arm: ArmSpec, worlds: list[PegWorl
     shifted = np.concatenate([np.zeros((1, arm.dof)), commands[:-1]])
     for u, v in zip(commands, shifted, strict=True):
         np.testing.assert_array_equal(late.step(u), prompt.step(v))
-    fraction = _world(arm, worlds, action_delay=0.01)
-    fraction.reset(q0), prompt.reset(q0)
-    previous = np.zeros(arm.dof)
-    for u in commands:
-        x = fraction.step(u)
+    # 10 ms: one physics step; 15 ms: each physics step feels the mean of the commands of 1 and
+    # 2 physics steps before; 2.5 ms: a quarter of the step before and the rest of this one
+    for delay, weights in ((0.01, (0.0, 1.0)), (0.015, (0.0, 0.5, 0.5)), (0.0025, (0.75, 0.25))):
+        _check_delayed_torques(arm, worlds, q0, commands, delay, weights)
+
+
+def _check_delayed_torques(
+    arm: ArmSpec,
+    worlds: list[PegWorld],
+    q0: np.ndarray,
+    commands: np.ndarray,
+    delay: float,
+    weights: tuple[float, ...],
+) -> None:
+    """A world with commands ``delay`` s late against PyBullet stepped by hand, physics step s
+    driven by ``sum_i weights[i] u(s - i)`` (u(s) the command issued for physics step s)."""
+    world, prompt = _world(arm, worlds, action_delay=delay), _world(arm, worlds)
+    world.reset(q0), prompt.reset(q0)
+    substeps = prompt.config.substeps
+    issued = np.concatenate([np.zeros((len(weights), arm.dof)), np.repeat(commands, substeps, 0)])
+    for t, u in enumerate(commands):
+        x = world.step(u)
         g = prompt.gravity_compensation()
-        for s in range(prompt.config.substeps):
-            tau = np.clip((previous if s == 0 else u) + g, -prompt.effort, prompt.effort)
+        for s in range(substeps):
+            now = len(weights) + t * substeps + s
+            mean = sum(w * issued[now - i] for i, w in enumerate(weights))
             pb.setJointMotorControlArray(
                 prompt.body,
                 prompt.joint_ids,
                 pb.TORQUE_CONTROL,
-                forces=tau.tolist(),
+                forces=np.clip(mean + g, -prompt.effort, prompt.effort).tolist(),
                 physicsClientId=prompt.client,
             )
             pb.stepSimulation(physicsClientId=prompt.client)
         moved = slice(0, 2 * arm.dof + 6)  # the point velocities differ by the reference
-        np.testing.assert_array_equal(x[moved], prompt.observe()[moved])
-        previous = u
+        np.testing.assert_allclose(x[moved], prompt.observe()[moved], rtol=0, atol=1e-12)
 
 
 def test_joint_friction_holds_a_small_torque(arm: ArmSpec, worlds: list[PegWorld]) -> None:
@@ -160,8 +178,9 @@ def test_bad_plants_are_refused() -> None:
     ):
         with pytest.raises(LolgpsError):
             PlantConfig(**bad)  # type: ignore[arg-type]
-    with pytest.raises(LolgpsError, match="whole number of physics steps"):
-        TaskConfig(urdf=KUKA, plant=PlantConfig(action_delay=0.015))
+    with pytest.raises(LolgpsError, match="action-delay"):
+        PlantConfig(action_delay=-0.01)
+    TaskConfig(urdf=KUKA, plant=PlantConfig(action_delay=0.015))  # any physical delay is taken
 
 
 def test_the_model_knows_the_delay(arm: ArmSpec, worlds: list[PegWorld]) -> None:

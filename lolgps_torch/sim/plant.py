@@ -58,8 +58,9 @@ class PlantConfig:
     :param joint_friction: Coulomb friction torque (N m) at every joint.
     :param obs_noise: standard deviation (rad) of the noise on the observed joint angles; the
         joint velocities get 10 times as much (rad/s).
-    :param action_delay: seconds between a command and the moment it acts on the arm: whole
-        physics steps, any number of control steps.
+    :param action_delay: seconds between a command and the moment it acts on the arm, any
+        duration: over a physics step that a delay of k + f physics steps splits, the arm
+        feels the command f of the step longer (:meth:`delay_steps`).
     """
 
     inertia_scale: float = 0.0
@@ -94,9 +95,15 @@ class PlantConfig:
         """Whether the simulated body's masses or inertias differ from the URDF's."""
         return self.inertia_scale > 0.0 or self.payload > 0.0
 
-    def delay_steps(self, physics_step: float) -> int:
-        """The delay in physics steps of ``physics_step`` seconds (:func:`physics_steps`)."""
-        return physics_steps(self.action_delay, physics_step, "--action-delay")
+    def delay_steps(self, physics_step: float) -> tuple[int, float]:
+        """The delay as ``k`` whole physics steps of ``physics_step`` seconds and a fraction
+        ``f`` in [0, 1) of the next, ``d = (k + f) h``. The torque acting over physics step s
+        is then the mean over that step of the commands shifted by d (each held for a physics
+        step): ``(1 - f) u_{s-k} + f u_{s-k-1}``."""
+        steps = self.action_delay / physics_step
+        if abs(steps - round(steps)) < 1e-9:  # whole steps, to rounding
+            return round(steps), 0.0
+        return math.floor(steps), steps - math.floor(steps)
 
     def link_factors(self, links: int) -> np.ndarray:
         """The per-link mass and inertia factors ``[links]`` (all 1 when S = 0)."""

@@ -216,13 +216,14 @@ class World(ABC):
         self.arm, self.config, self.plant = arm, config, plant
         self.layout = config.layout(arm.dof)
         self.nominal_mouth = np.asarray(nominal_mouth, dtype=np.float64)
-        self.delay = plant.delay_steps(config.dt / config.substeps)
+        self.delay, self.delay_fraction = plant.delay_steps(config.dt / config.substeps)
         self.offsets = np.asarray(arm.point_offsets, dtype=np.float64)  # [2, 3]
         self.effort = np.asarray(arm.effort, dtype=np.float64)
         self.targets = np.zeros((2, 3))
         self._prev_points = np.zeros(6)
         self._points = np.zeros(6)
-        self._queue = np.zeros((self.delay, arm.dof))  # commands issued, not yet acting
+        # commands issued, not yet acting (one more where a physics step mixes two)
+        self._queue = np.zeros((self.delay + (self.delay_fraction > 0), arm.dof))
         self._issued = np.zeros((config.history, arm.dof))  # the last commands, newest first
         self._noise: np.random.Generator | None = None
         self._observed_q = np.zeros(arm.dof)  # the joint angles the last observation gave
@@ -313,7 +314,9 @@ class World(ABC):
     def step(self, u: np.ndarray) -> np.ndarray:
         """Issue torque ``u`` (on top of gravity compensation) for one control step, starting
         from the state the last :meth:`reset`, :meth:`observe` or :meth:`step` returned; with a
-        delay of d physics steps, the commands issued d steps earlier act instead."""
+        delay of d physics steps, the commands issued d steps earlier act instead (over a
+        step that a fractional delay splits, the mean of the two, :meth:`PlantConfig.delay_steps
+        <lolgps_torch.sim.plant.PlantConfig.delay_steps>`)."""
         for tau in self._command(u):
             self._physics_step(tau)
         return self.observe()
@@ -330,10 +333,14 @@ class World(ABC):
             sent, g_total = u + own, g + own
         else:
             sent, g_total = u, g
-        held = np.empty((self.delay + substeps, len(u)))
-        held[: self.delay] = self._queue
-        held[self.delay :] = sent
+        late = len(self._queue)
+        held = np.empty((late + substeps, len(u)))
+        held[:late] = self._queue
+        held[late:] = sent
         self._queue = held[substeps:]
+        if self.delay_fraction > 0:  # row j + 1 is k physics steps late at step j, row j k + 1
+            f = self.delay_fraction
+            held = (1.0 - f) * held[1:] + f * held[:-1]
         # the commands as they act (within the effort limits): past commands beyond them
         # would grow without bound under a controller that feeds them back
         acting = np.clip(u + g_total, -self.effort, self.effort) - g_total
