@@ -181,6 +181,7 @@ def test_bad_plants_are_refused() -> None:
     with pytest.raises(LolgpsError, match="action-delay"):
         PlantConfig(action_delay=-0.01)
     TaskConfig(urdf=KUKA, plant=PlantConfig(action_delay=0.015))  # any physical delay is taken
+    assert WorldConfig(known_delay=0.012).delay_steps == 1  # the model's: the nearest step
 
 
 def test_the_model_knows_the_delay(arm: ArmSpec, worlds: list[PegWorld]) -> None:

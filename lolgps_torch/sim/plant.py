@@ -33,18 +33,6 @@ GravityCompensation = Literal["plant", "model", "none"]
 VELOCITY_NOISE_RATIO = 10.0  # velocity noise per unit of joint-angle noise (rad/s per rad)
 
 
-def physics_steps(seconds: float, physics_step: float, flag: str) -> int:
-    """``seconds`` as a whole number of physics steps of ``physics_step`` seconds; any other
-    duration is a :class:`LolgpsError` naming ``flag``."""
-    steps = round(seconds / physics_step)
-    if abs(steps * physics_step - seconds) > 1e-9:
-        raise LolgpsError(
-            f"{flag} {seconds:g} s is not a whole number of physics steps of {physics_step:g} s "
-            "(dt / substeps)"
-        )
-    return steps
-
-
 @dataclass(frozen=True)
 class PlantConfig:
     """How the simulated arm differs from its URDF (module docstring).

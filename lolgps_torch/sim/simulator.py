@@ -39,7 +39,6 @@ from lolgps_torch.sim.plant import (
     NOMINAL_PLANT,
     VELOCITY_NOISE_RATIO,
     PlantConfig,
-    physics_steps,
 )
 from lolgps_torch.state import StateLayout
 
@@ -64,8 +63,8 @@ class WorldConfig:
         drifted 7 rad in 5 s with zero action before this).
     :param max_joint_speed: joint speed (rad/s) beyond which a state counts as a simulator
         blow-up (PyBullet itself caps joint speeds at 100 rad/s by default).
-    :param known_delay: the command delay (s) the learner allows for, whole physics steps: the
-        state carries the actions of the last ceil(d / dt) control steps and the arm's model
+    :param known_delay: the command delay (s) the learner allows for, to the nearest physics
+        step (dt / substeps): the state carries the actions of the last ceil(d / dt) control steps and the arm's model
         acts on each command d late (set it to the arm's latency)
     :param compensate_gravity: the learner adds its own model's gravity torque
         ``g_URDF(q)`` (the URDF's rigid-body inverse dynamics at rest, at the observed joint
@@ -117,12 +116,11 @@ class WorldConfig:
             )
         if not (math.isfinite(self.known_delay) and self.known_delay >= 0):
             raise LolgpsError(f"--known-delay must be >= 0 and finite, got {self.known_delay}")
-        physics_steps(self.known_delay, self.dt / self.substeps, "--known-delay")
 
     @property
     def delay_steps(self) -> int:
-        """The known delay in physics steps."""
-        return physics_steps(self.known_delay, self.dt / self.substeps, "--known-delay")
+        """The known delay in physics steps, to the nearest."""
+        return round(self.known_delay * self.substeps / self.dt)
 
     @property
     def history(self) -> int:

@@ -30,7 +30,7 @@ def parse_args() -> argparse.Namespace:
         type=float,
         nargs="+",
         default=[0.0, 0.01, 0.02, 0.05],
-        help="plant delays (s), whole physics steps",
+        help="plant delays (s)",
     )
     parser.add_argument(
         "--obs-noise", type=float, nargs="+", default=[0.0], help="plant sensor noise levels (rad)"
