@@ -1,7 +1,7 @@
 """Evaluate finished runs again under other guard settings, to see what the guard costs and saves.
 
     python scripts/research/guard_variants.py SWEEP_OR_RUN ... --out DIR [--speed V]
-                                              [--window W] [--retreat R]
+                                              [--window W] [--retreat R] [--brake B]
                                               [--torque T | --no-torque] [--off] [--workers N]
 
 Each evaluated run folder (a sweep folder stands for every evaluated run in it) is copied to
@@ -15,7 +15,8 @@ torque, ``--no-torque`` leaves them unbounded, ``--off`` turns the whole guard o
 conditions up to each checkpoint), at ``--speed`` times (default: the run's margin) D_g's
 largest speed from W steps before each step on. ``--retreat R`` fits the retreat that trips the
 brake to the replay as well, R metres beyond D_g's largest (a run trained before the retreat
-trip has none). The brake gain stays the run's. The policies themselves are the runs' own, so
+trip has none). ``--brake B`` scales the brake's gain to take B of the joint speeds away per
+control step instead of the run's share (default: the run's). The policies themselves are the runs' own, so
 only acting (by this checkout's guard) changes; compare with
 ``scripts/research/seed_table.py RUNS DIR --label trained variant``.
 """
@@ -55,6 +56,7 @@ def parse_args() -> argparse.Namespace:
     torque.add_argument("--no-torque", action="store_true", help="torques unbounded")
     parser.add_argument("--window", type=int, default=None, help="per-step trip speeds")
     parser.add_argument("--retreat", type=float, default=None, help="retreat trip margin (m)")
+    parser.add_argument("--brake", type=float, default=None, help="brake's share per step")
     parser.add_argument("--off", action="store_true", help="no guard at all")
     parser.add_argument("--workers", type=int, default=2, help="evaluation processes")
     args = parser.parse_args()
@@ -62,6 +64,8 @@ def parse_args() -> argparse.Namespace:
         value = getattr(args, name)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise LolgpsError(f"--{name} must be a positive number, got {value}")
+    if args.brake is not None and not 0.0 < args.brake <= 1.0:
+        raise LolgpsError(f"--brake must be in (0, 1], got {args.brake}")
     if args.retreat is not None and not 0.0 <= args.retreat < math.inf:
         raise LolgpsError(f"--retreat must be a distance >= 0 (m), got {args.retreat}")
     if args.window is not None and args.window < 0:
@@ -105,7 +109,10 @@ def reguarded(
         torque = guard.torque * (args.torque / trained["guard_torque"])
     else:
         torque = guard.torque
-    return Guard(torque, speed, guard.brake, retreat)
+    brake = (
+        guard.brake if args.brake is None else guard.brake * (args.brake / trained["guard_brake"])
+    )
+    return Guard(torque, speed, brake, retreat)
 
 
 def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None:
