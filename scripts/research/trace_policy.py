@@ -2,6 +2,7 @@
 
     python scripts/research/trace_policy.py --run DIR [--checkpoint N]
                                             [--steps 0 3 6 10 20 50 99] [--area-misses K]
+                                            [--stage NAME]
 
 For each condition in DIR/replay.h5 it prints two lines:
 
@@ -24,7 +25,7 @@ For each condition in DIR/replay.h5 it prints two lines:
 ``--checkpoint`` picks the policy saved after that condition (default: the last).
 
 ``--area-misses K`` instead traces the test positions of area K in DIR/eval.json (written by
-``scripts/evaluate.py``) that the last stage's policy missed, with their distance to the
+``scripts/evaluate.py``) that the last stage's policy (``--stage NAME``: that stage's) missed, with their distance to the
 nearest training position: a ``rollout`` and a ``support`` line each, no D_g fit.
 """
 
@@ -64,6 +65,9 @@ def parse_args() -> argparse.Namespace:
         metavar="K",
         help="trace test area K's positions the final policy missed (from DIR/eval.json)",
     )
+    parser.add_argument(
+        "--stage", default=None, help="with --area-misses: the stage's policy (default: the last)"
+    )
     return parser.parse_args()
 
 
@@ -75,7 +79,7 @@ def main() -> None:
     if bad:
         raise LolgpsError(f"--steps must lie in [0, {T}), got {bad}")
     if args.area_misses is not None:
-        trace_area_misses(loaded, args.area_misses, args.steps)
+        trace_area_misses(loaded, args.area_misses, args.steps, args.stage)
         return
     last = loaded.records[-1].condition if args.checkpoint is None else args.checkpoint
     policy = loaded.policy(last)
@@ -179,12 +183,16 @@ def _cells(error_mm: torch.Tensor) -> str:
     return " ".join(f"({e[0]:+.0f},{e[1]:+.0f},{e[2]:+.0f})" for e in error_mm.tolist())
 
 
-def trace_area_misses(loaded: LoadedRun, area: int, steps: list[int]) -> None:
-    """Rollout lines at the positions of test area ``area`` that the last stage missed."""
+def trace_area_misses(
+    loaded: LoadedRun, area: int, steps: list[int], stage_name: str | None
+) -> None:
+    """Rollout lines at the positions of test area ``area`` that the stage ``stage_name``
+    (None: the last) missed."""
     folder: RunFolder = loaded.folder
     try:
         evaluation = read_evaluation(folder.path)
-        stage = evaluation["stages"][-1]
+        stages = {s["name"]: s for s in evaluation["stages"]}
+        stage = evaluation["stages"][-1] if stage_name is None else stages[stage_name]
         group = evaluation["groups"][area]
         finals = stage["per_position"]["final_distance"][area]
         threshold = float(evaluation["success_threshold"])
