@@ -15,7 +15,8 @@ torque, ``--no-torque`` leaves them unbounded, ``--off`` turns the whole guard o
 conditions up to each checkpoint), at ``--speed`` times (default: the run's margin) D_g's
 largest speed from W steps before each step on. ``--retreat R`` fits the retreat that trips the
 brake to the replay as well, R metres beyond D_g's largest (a run trained before the retreat
-trip has none). ``--brake B`` scales the brake's gain to take B of the joint speeds away per
+trip has none); with either, ``--torque T`` is fitted to the replay too, T times the largest
+teacher torque (a run trained without a bound has none to rescale). ``--brake B`` scales the brake's gain to take B of the joint speeds away per
 control step instead of the run's share (default: the run's). The policies themselves are the runs' own, so
 only acting (by this checkout's guard) changes; compare with
 ``scripts/research/seed_table.py RUNS DIR --label trained variant``.
@@ -89,7 +90,7 @@ def reguarded(
         window = args.window if args.window is not None else None if kept is None else int(kept)
         config = PolicyConfig(
             guard_speed=args.speed or trained["guard_speed"], guard_window=window,
-            guard_retreat=args.retreat,
+            guard_retreat=args.retreat, guard_torque=args.torque,
         )  # fmt: skip
         fitted = guard_of(data, StateLayout(guard.torque.shape[0]), config)
         if fitted is None:
@@ -103,9 +104,14 @@ def reguarded(
     retreat = guard.retreat if args.retreat is None or fitted is None else fitted.retreat
     if args.no_torque:
         torque = torch.full_like(guard.torque, math.inf)
+    elif args.torque and fitted is not None:
+        torque = fitted.torque
     elif args.torque:
         if trained["guard_torque"] is None:
-            raise LolgpsError("--torque: the runs were trained without a torque bound")
+            raise LolgpsError(
+                "--torque: the runs were trained without a torque bound (add --window or "
+                "--retreat to fit it to the replay)"
+            )
         torque = guard.torque * (args.torque / trained["guard_torque"])
     else:
         torque = guard.torque
