@@ -285,10 +285,11 @@ class PegTask:
             self._model = ControlStep(self.arm, self.config.world, device=self.device)
         return self._model
 
-    def record(self, samples: Trajectories, keep: int = IDENTIFY_TRANSITIONS) -> None:
-        """Keep the newest ``keep`` transitions of ``samples`` that are free of contact (the
-        tip higher than the table by :data:`CLEARANCE` before and after) and of the joint
-        limits (by :data:`LIMIT_MARGIN` rad), for :meth:`identify_model`."""
+    def free_transitions(self, samples: Trajectories) -> tuple[Tensor, Tensor]:
+        """The states ``[N, T+1, dX]`` of ``samples`` (the final one appended) and which of
+        their transitions ``[N, T]`` are free of contact (the tip higher than the table by
+        :data:`CLEARANCE` before and after) and of the joint limits (by :data:`LIMIT_MARGIN`
+        rad)."""
         lay = self.layout
         lower, upper = (
             torch.tensor(limit, dtype=torch.float64, device=self.device)
@@ -299,10 +300,33 @@ class PegTask:
         clear = (tip_height > self.config.world.depth + CLEARANCE) & (
             torch.minimum(q - lower, upper - q).amin(-1) > LIMIT_MARGIN
         )
-        kept = Transitions.from_rollouts(x, samples.u, lay, clear[:, :-1] & clear[:, 1:])
+        return x, clear[:, :-1] & clear[:, 1:]
+
+    def record(self, samples: Trajectories, keep: int = IDENTIFY_TRANSITIONS) -> None:
+        """Keep the newest ``keep`` of the transitions of ``samples`` that are free of contact
+        and of the joint limits (:meth:`free_transitions`), for :meth:`identify_model`."""
+        x, free = self.free_transitions(samples)
+        kept = Transitions.from_rollouts(x, samples.u, self.layout, free)
         self._seen.append(kept)
         parts = zip(*self._seen, strict=True)
         self._seen = [Transitions(*(torch.cat(list(part))[-keep:] for part in parts))]
+
+    def one_step_errors(self, samples: Trajectories) -> tuple[float, float, int]:
+        """The root-mean-square joint-velocity error (rad/s) of one control step predicted by
+        :attr:`model` and by the URDF's model, over the free transitions of ``samples``
+        (:meth:`free_transitions`), and how many there are (NaN errors where none)."""
+        x, free = self.free_transitions(samples)
+        before, after, u = x[:, :-1][free], x[:, 1:][free], samples.u[free]
+        if before.shape[0] == 0:
+            return math.nan, math.nan, 0
+        qd = self.layout.qd
+        urdf = ControlStep(self.arm, self.config.world, device=self.device)
+        with torch.no_grad():
+            errors = [
+                float((model(before, u)[:, qd] - after[:, qd]).square().mean().sqrt())
+                for model in (self.model, urdf)
+            ]
+        return errors[0], errors[1], int(before.shape[0])
 
     def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
         """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the

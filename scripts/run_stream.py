@@ -54,7 +54,12 @@ from lolgps_torch.cli import (
     task_config,
     workers,
 )
-from lolgps_torch.data.records import ConditionSummary, DistillRecord, IterationRecord
+from lolgps_torch.data.records import (
+    ConditionSummary,
+    DistillRecord,
+    IdentifiedRecord,
+    IterationRecord,
+)
 from lolgps_torch.data.run_folder import (
     RunFolder,
     arm_urdf,
@@ -261,9 +266,16 @@ def plan_run(args: argparse.Namespace) -> Plan:
     return Plan(folder, config, urdf_text, args.method, stream, task, conditions, device)
 
 
-def _record_line(record: IterationRecord | DistillRecord, total: int) -> str:
+def _record_line(record: IterationRecord | IdentifiedRecord | DistillRecord, total: int) -> str:
     if isinstance(record, DistillRecord):
         return f"S-step took {record.time_distill:.1f}s"
+    if isinstance(record, IdentifiedRecord):
+        return (
+            f"condition {record.condition + 1}/{total}  arm identified: payload "
+            f"{record.payload:.3f} kg, gravity compensation x {record.compensation:.3f}; one-step "
+            f"joint-speed error on its first rollouts {record.error_identified:.4f} rad/s "
+            f"(URDF model {record.error_urdf:.4f}, {record.transitions} free transitions)"
+        )
     return (
         f"condition {record.condition + 1}/{total}  iter {record.iteration:2d}  "
         f"cost {record.mean_cost:8.2f}  distance mean {record.mean_distance:.3f} "
@@ -307,7 +319,7 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
     folder, total = plan.folder, len(plan.conditions)
     bar = Bar(total, "conditions")
 
-    def log(record: IterationRecord | DistillRecord) -> None:
+    def log(record: IterationRecord | IdentifiedRecord | DistillRecord) -> None:
         folder.append_metrics(record.to_json())
         bar.write(_record_line(record, total))
 

@@ -115,3 +115,33 @@ def test_objective_gradients(arm: ArmSpec) -> None:
         return objective(balance, prior, data, config, t).square().sum()
 
     assert torch.autograd.gradcheck(loss, (theta.requires_grad_(),))
+
+
+def test_the_learner_reports_the_identified_arm_on_unseen_rollouts() -> None:
+    """With ``identify``, a condition's learner identifies the arm from the earlier conditions'
+    free-space transitions and reports it once, with the one-step errors on its own first
+    rollouts: on an arm carrying 1 kg that its URDF lacks (compensated by the URDF), the
+    identified payload is near 1 kg and its one-step error a fraction of the URDF model's."""
+    from lolgps_torch.data.records import IdentifiedRecord
+    from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+    from lolgps_torch.task import PegTask, TaskConfig
+
+    plant = PlantConfig(payload=1.0, gravity_compensation="model")
+    task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf", plant=plant), n_worlds=5)
+    config = LocalConfig(identify=True)
+    reports: list[IdentifiedRecord] = []
+    try:
+        first = LocalLearner(task, (0.02, 0.02), config, 0, reports.append, 0)
+        for i in range(3):
+            iterate(first, first.p_cur, None, False, (0, i, 0.0))
+        assert reports == []  # nothing to identify from before the first condition
+        second = LocalLearner(task, (-0.02, 0.02), config, 1, reports.append, 1)
+        for i in range(2):
+            iterate(second, second.p_cur, None, False, (1, i, 0.0))
+    finally:
+        task.close()
+    (report,) = reports
+    assert report.condition == 1 and report.transitions > 0
+    assert report.payload == pytest.approx(1.0, rel=0.25)
+    assert report.error_identified < 0.2 * report.error_urdf
+    assert report.to_json()["event"] == "identified"

@@ -1,6 +1,7 @@
 """Typed records of a run, written as JSON with these field names as keys.
 
-:class:`IterationRecord` and :class:`DistillRecord` are the lines of ``metrics.jsonl``;
+:class:`IterationRecord`, :class:`IdentifiedRecord` and :class:`DistillRecord` are the lines
+of ``metrics.jsonl``;
 :class:`ConditionSummary` is a condition's entry in ``summary.json`` (and its checkpoint's
 ``entry.json``).
 """
@@ -32,6 +33,29 @@ class IterationRecord:
     time_sample: float
     time_fit: float
     time_cstep: float
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class IdentifiedRecord:
+    """The arm identified at the start of a condition (``--identify``,
+    :mod:`lolgps_torch.dynamics.identify`) and how well it predicts the condition's first
+    rollouts, which the identification has not seen: the payload (kg) and its position in the
+    last body's frame (m), the gravity compensation's gain, the links' mass scales, and the
+    root-mean-square joint-velocity error (rad/s) of one control step predicted by the
+    identified arm and by the URDF's, over those rollouts' ``transitions`` free of contact."""
+
+    condition: int
+    payload: float
+    payload_com: list[float]
+    compensation: float
+    mass_scale: list[float]
+    error_identified: float
+    error_urdf: float
+    transitions: int
+    event: Literal["identified"] = "identified"
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -76,7 +76,7 @@ class BatchLearner:
             raise LolgpsError(f"{self.folder.path} holds a finished batch GPS run")
         cfg, task = self.config, self.task
         learners = [
-            LocalLearner(task, offset, cfg.local, seed=condition_seed(cfg, m))
+            LocalLearner(task, offset, cfg.local, condition_seed(cfg, m), self.log, m)
             for m, offset in enumerate(conditions)
         ]
         priors = [prior_from_config(cfg.local.dynamics) for _ in conditions]

@@ -33,9 +33,9 @@ from torch import Tensor
 
 from lolgps_torch.controllers import hold_controller, smoothed_noise
 from lolgps_torch.cost.l12 import to_quadratic
-from lolgps_torch.data.records import IterationRecord
+from lolgps_torch.data.records import IdentifiedRecord, IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
-from lolgps_torch.dynamics.identify import IdentifyConfig
+from lolgps_torch.dynamics.identify import ArmParameters, IdentifyConfig
 from lolgps_torch.errors import NumericalError, check_fields
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
@@ -197,20 +197,50 @@ def step_rejected(totals: Tensor, last: Accepted, start_cost: float, z: float) -
     return cost - last.cost > z * math.sqrt(se2 + last.cost_se2) or float(totals.max()) > start_cost
 
 
+Report = Callable[[IdentifiedRecord], None]
+
+
+def identified_record(
+    condition: int, params: ArmParameters, errors: tuple[float, float, int]
+) -> IdentifiedRecord:
+    """The record of the arm ``params`` identified for ``condition``, with the one-step errors
+    (identified, URDF, transitions) of :meth:`PegTask.one_step_errors`."""
+    return IdentifiedRecord(
+        condition=condition,
+        payload=float(params.payload),
+        payload_com=params.payload_com.tolist(),
+        compensation=float(params.compensation),
+        mass_scale=params.mass_scale.tolist(),
+        error_identified=errors[0],
+        error_urdf=errors[1],
+        transitions=errors[2],
+    )
+
+
 class LocalLearner:
     """p_cur, its dynamics model and its step size, for one condition (a hole offset)."""
 
     def __init__(
-        self, task: PegTask, offset: tuple[float, float], config: LocalConfig, seed: int
+        self,
+        task: PegTask,
+        offset: tuple[float, float],
+        config: LocalConfig,
+        seed: int,
+        report: Report | None = None,
+        condition: int = 0,
     ) -> None:
+        """``report`` receives the arm identified for condition ``condition`` (with
+        ``config.identify``), measured on the condition's first rollouts."""
         self.task, self.offset, self.config = task, offset, config
         self.generator = torch.Generator().manual_seed(seed)
         self.targets = task.targets([offset])[0]
         self.p_cur = initial_controller(task, config)
         self.start_cost = math.inf  # the hold's mean total cost, measured by the first samples
         model = config.dynamics.prior == "model"
-        if model and config.identify:
-            task.identify_model(IdentifyConfig())
+        self.identified = (
+            task.identify_model(IdentifyConfig()) if model and config.identify else None
+        )
+        self.report, self.condition = report, condition
         self.fitter = DynamicsFitter(config.dynamics, task.model.linearize if model else None)
         start = time.perf_counter()
         if model and config.model_plans > 0:
@@ -237,6 +267,10 @@ class LocalLearner:
         actor = linear_gaussian_actor(p_act, noise)
         samples = self.task.sample(actor, [self.offset] * self.config.samples)
         if self.config.identify:
+            if self.identified is not None and self.report is not None:  # once: unseen rollouts
+                errors = self.task.one_step_errors(samples)
+                self.report(identified_record(self.condition, self.identified, errors))
+                self.identified = None
             self.task.record(samples)
         return samples
 

@@ -36,7 +36,12 @@ import torch
 from lolgps_torch.controllers import mix
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy, save_policy
-from lolgps_torch.data.records import ConditionSummary, DistillRecord, IterationRecord
+from lolgps_torch.data.records import (
+    ConditionSummary,
+    DistillRecord,
+    IdentifiedRecord,
+    IterationRecord,
+)
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
@@ -51,7 +56,7 @@ from lolgps_torch.types import LinearGaussian, Trajectories
 AlphaSchedule = Literal["constant", "dynamic"]
 Transfer = Literal["none", "policy"]
 CStepAnchor = Literal["previous", "pre"]
-Log = Callable[[IterationRecord | DistillRecord], None]
+Log = Callable[[IterationRecord | IdentifiedRecord | DistillRecord], None]
 
 
 @dataclass(frozen=True)
@@ -197,7 +202,7 @@ class StreamLearner:
         """One condition of Algorithm 2: local learning, D_g and the S-step with replay;
         returns its summary entry."""
         cfg, seed = self.config, condition_seed(self.config, index)
-        learner = LocalLearner(self.task, offset, cfg.local, seed=seed)
+        learner = LocalLearner(self.task, offset, cfg.local, seed, self.log, index)
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
         phases, probes = self.phases(offset)
         outcome = self.learn_locally(learner, linearize, index, phases, probes)
