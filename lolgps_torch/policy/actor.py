@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
-from lolgps_torch.policy.guard import fresh_state, guarded
+from lolgps_torch.policy.guard import guarded
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.sim.rollout import Actor, matmul_rows
 from lolgps_torch.state import StateLayout
@@ -17,34 +17,34 @@ from lolgps_torch.state import StateLayout
 class PolicyActor:
     """``u_t = mu_theta(x_t) + shifted_t`` for the batch's rows ``rows`` (no noise when
     ``shifted`` is None), through the policy's guard (:func:`guarded`), which remembers per
-    row its state in this rollout (``state``, :func:`guarded`'s, grown to the rows seen, fresh
-    at t = 0); plain data, so that it can be sent to a worker process.
+    row the tip's closest approach to its target in this rollout (``closest``, m, grown to the
+    rows seen, forgotten at t = 0); plain data, so that it can be sent to a worker process.
     ``by_rows``: the row-wise form (:meth:`rowwise`)."""
 
     policy: GaussianPolicy
     shifted: Tensor | None  # [N, T, dU]: chol(Sigma_pi) eps_t per rollout
-    state: Tensor = field(default_factory=lambda: fresh_state(0))
+    closest: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.float64))
     by_rows: bool = False
 
     def rowwise(self) -> Actor:
         """The same actor computing each row alone (every matrix product of the policy and of
         the guard's brake by :func:`matmul_rows`), for rows stepped together."""
-        return replace(self, state=fresh_state(0), by_rows=True)
+        return replace(self, closest=torch.zeros(0, dtype=torch.float64), by_rows=True)
 
     def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
         with torch.no_grad():
             u = self.policy(x, matmul_rows) if self.by_rows else self.policy(x)
         u = u if self.shifted is None else u + self.shifted[rows, t]
         start, stop = rows.start or 0, rows.stop
-        if stop > self.state.shape[0]:
-            grown = fresh_state(stop, x.device)
-            grown[: self.state.shape[0]] = self.state
-            self.state = grown
+        if stop > self.closest.shape[0]:
+            grown = torch.full((stop,), torch.inf, dtype=x.dtype, device=x.device)
+            grown[: self.closest.shape[0]] = self.closest
+            self.closest = grown
         if t == 0:
-            self.state[start:stop] = fresh_state(stop - start, x.device)
+            self.closest[start:stop] = torch.inf
         product = matmul_rows if self.by_rows else (lambda v, A: v @ A.T)
-        u, self.state[start:stop] = guarded(
-            u, x, StateLayout(self.policy.dU), self.state[start:stop], self.policy.guard, t,
+        u, self.closest[start:stop] = guarded(
+            u, x, StateLayout(self.policy.dU), self.closest[start:stop], self.policy.guard, t,
             product,
         )  # fmt: skip
         return u

@@ -5,8 +5,7 @@ times the largest torque its teachers ever gave, flinging the arm a metre or mor
 keeps the policy inside what its teachers did, with bounds fitted to every condition's D_g:
 
     u_t = clip(mu_theta(x_t) (+ noise), -tau, tau)      tau_j = torque_margin max |mu_cur,j|
-    while |q-dot_j(t)| > v_j(t) for some joint, or d_t - min_{s <= t} d_s > rho,
-    and for the rest of the rollout once that has begun a second time:
+    while |q-dot_j(t)| > v_j(t) for some joint, or d_t - min_{s <= t} d_s > rho:
         u_t = clip(-beta B^-1 q-dot_t, -tau, tau)
     v_j(t) = speed_margin max_{m, s >= t - w} |q-dot_j^m(s)|
     rho = retreat_margin + max_{m, t} (d^m_t - min_{s <= t} d^m_s)
@@ -17,11 +16,10 @@ target). The trip speed at step t is the largest speed D_g still reaches from ``
 before t on (``w`` None: one speed for every step, the largest in D_g): while the arm moves in
 it is the teachers' largest, and once they have slowed down to insert, theirs from then on. A
 policy that misses a far hole comes to rest at the plate and is flung from there, long after
-it passed the largest speeds its teachers reached while moving in. The first time, the brake
-acts only while a bound is passed: a policy that heads for a far hole faster than its teachers
-did is slowed down, not stopped where it is (stopped, it would hang in the air, further from
-the hole than it started). A policy that passes a bound again is off course, and released it
-would push the arm on: the brake then holds for good. The retreat rho stops what the speeds miss, a slow rise away from the hole
+it passed the largest speeds its teachers reached while moving in. The brake acts only while a
+speed is past its bound: a policy that heads for a far hole faster than its teachers did is
+slowed down, not stopped where it is (stopped, it would hang in the air, further from the hole
+than it started). The retreat rho stops what the speeds miss, a slow rise away from the hole
 late in the rollout: the teachers seldom move the tip away from their closest approach (on the
 KUKA by 7-13 mm at most), and the brake then holds for as long as the tip stays away.
 
@@ -115,34 +113,21 @@ def tip_distance(x: Tensor, layout: StateLayout) -> Tensor:
     return x[..., layout.points][..., :3].norm(dim=-1)
 
 
-def fresh_state(n: int, device: torch.device | str = "cpu") -> Tensor:
-    """The guard's state of ``n`` rollouts at their start (:func:`guarded`)."""
-    state = torch.zeros(n, 3, dtype=torch.float64, device=device)
-    state[:, 0] = math.inf
-    return state
-
-
 def guarded(
     u: Tensor,
     x: Tensor,
     layout: StateLayout,
-    state: Tensor,
+    closest: Tensor,
     guard: Guard,
     t: int,
     product: Callable[[Tensor, Tensor], Tensor] = lambda x, A: x @ A.T,
 ) -> tuple[Tensor, Tensor]:
     """Actions ``u: [n, dU]`` at step ``t`` and states ``x: [n, dX]`` (blocks as ``layout``)
-    through the guard; ``state [n, 3]`` holds per rollout its closest approach to the target
-    before ``t`` (m), the times it has passed a bound and whether it passed one at ``t - 1``
-    (:func:`fresh_state` at the start). Returns the actions and the state after ``t``. The
-    brake acts while a bound is passed, and from the second time one is passed on for the
-    rest of the rollout (a policy on course passes one at most once, in its fastest steps).
-    ``product(x, A)`` is ``x @ A^T`` (a row-wise form of it for lockstep rollouts)."""
+    through the guard, given each rollout's closest approach to its target before ``t``
+    (``closest [n]``, m; inf at the start); returns the actions and the closest approach up
+    to ``t``. ``product(x, A)`` is ``x @ A^T`` (a row-wise form of it for lockstep rollouts)."""
     qd, distance = x[..., layout.qd], tip_distance(x, layout)
-    closest = torch.minimum(state[:, 0], distance)
-    passed = (qd.abs() > guard.speed_at(t)).any(-1) | (distance - closest > guard.retreat)
-    trips = state[:, 1] + (passed & (state[:, 2] == 0)).to(state.dtype)
-    braking = passed | (trips >= 2)
+    closest = torch.minimum(closest, distance)
+    braking = (qd.abs() > guard.speed_at(t)).any(-1) | (distance - closest > guard.retreat)
     held = torch.where(braking[:, None], product(qd, guard.brake), u)
-    clipped = torch.maximum(torch.minimum(held, guard.torque), -guard.torque)
-    return clipped, torch.stack([closest, trips, passed.to(state.dtype)], -1)
+    return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest
