@@ -42,10 +42,10 @@ class PolicyActor:
             self.closest = grown
         if t == 0:
             self.closest[start:stop] = torch.inf
-        product = matmul_rows if self.by_rows else (lambda v, A: v @ A.T)
+        rowwise = (matmul_rows,) if self.by_rows else ()  # else guarded's own x @ A^T
         u, self.closest[start:stop] = guarded(
             u, x, StateLayout(self.policy.dU), self.closest[start:stop], self.policy.guard, t,
-            product,
+            *rowwise,
         )  # fmt: skip
         return u
 

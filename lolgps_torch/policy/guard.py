@@ -21,7 +21,7 @@ speed is past its bound: a policy that heads for a far hole faster than its teac
 slowed down, not stopped where it is (stopped, it would hang in the air, further from the hole
 than it started). The retreat rho stops what the speeds miss, a slow rise away from the hole
 late in the rollout: the teachers seldom move the tip away from their closest approach (on the
-KUKA by 7-13 mm at most), and the brake then holds for as long as the tip stays away.
+KUKA by 6-16 mm at most), and the brake then holds for as long as the tip stays away.
 
 with ``B`` the arm's response to a torque over one control step fitted to D_g's transitions by
 least squares, ``q-dot_{t+1} - q-dot_t ~ B u_t + c``: the brake takes ``beta`` of the joint

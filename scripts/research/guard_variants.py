@@ -136,6 +136,7 @@ def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None
         data = [r.samples for r in records if r.condition <= last]
         policy.set_guard(reguarded(policy.guard, trained, args, data))
         save_policy(checkpoint, policy)
+    print(f"{target}: the last policy's retreat trip rho {float(policy.guard.retreat):.4f} m")
 
 
 def main() -> None:
