@@ -4,6 +4,7 @@ through a checkpoint."""
 
 from __future__ import annotations
 
+import functools
 import pickle
 from pathlib import Path
 
@@ -12,10 +13,12 @@ import torch
 from lolgps_torch.data.checkpoint import load_policy, save_policy
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
 from lolgps_torch.policy.guard import Guard, fit_guard, guarded
-from lolgps_torch.sim.rollout import Rowwise
+from lolgps_torch.sim.rollout import Rowwise, matmul_rows
 from lolgps_torch.state import StateLayout
+from lolgps_torch.task import PegTask, TaskConfig
 
 F64 = torch.float64
+ROOT = Path(__file__).resolve().parents[1]
 LAYOUT = StateLayout(2)
 
 
@@ -30,59 +33,39 @@ def _known_system(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     return x, u, B
 
 
-def test_the_brake_inverts_the_fitted_response() -> None:
-    x, u, B = _known_system()
-    guard = fit_guard(x, u, 2.0 * u, LAYOUT, 1.3, 1.2, None, None, 0.5)
-    assert torch.allclose(guard.brake, -0.5 * torch.linalg.inv(B), atol=1e-9)
+def test_the_bounds_are_margins_on_the_data() -> None:
+    x, u, _ = _known_system()
+    guard = fit_guard(x, 2.0 * u, LAYOUT, 1.3, 1.2, None, None, 0.5)
+    assert float(guard.brake) == 0.5
     assert torch.allclose(guard.torque, 1.3 * 2.0 * u.abs().amax((0, 1)))
     assert torch.allclose(guard.speed, 1.2 * x[..., LAYOUT.qd].abs().amax((0, 1))[None])
-    # the brake takes half the speed away in one step of the known system
-    qd = torch.tensor([[0.3, -0.2]], dtype=F64)
-    assert torch.allclose(qd + (qd @ guard.brake.T) @ B.T, 0.5 * qd)
 
 
-def test_without_a_torque_margin_torques_are_unbounded() -> None:
-    x, u, _ = _known_system()
-    teacher = u.clone()
-    teacher[:, :, 1] = 0.0  # a joint its teachers never pushed stays unbounded too (no 0 * inf)
-    guard = fit_guard(x, u, teacher, LAYOUT, None, 3.0, None, None, 0.5)
-    assert torch.isinf(guard.torque).all() and (guard.torque > 0).all()
-    assert torch.allclose(guard.speed, 3.0 * x[..., LAYOUT.qd].abs().amax((0, 1))[None])
+def test_the_brake_takes_its_share_of_the_speeds_away_on_the_arm() -> None:
+    """``stopping(x) = M(q) q-dot / dt`` row by row equals the batched mass matrix's product;
+    in PyBullet's world (an independent answer: its own dynamics, gravity compensated), the
+    brake's torque held over one control step slows the joint speeds that random torques gave
+    the arm by at least beta (the joints' damping takes more), as the arm's model predicts."""
+    task = PegTask(TaskConfig(str(ROOT / "robots" / "kuka_peg.urdf")), n_worlds=3)
+    try:
+        lay, dt = task.layout, task.config.world.dt
+        g = torch.Generator().manual_seed(5)
+        push = 2.0 * torch.randn(3, 3, lay.dU, dtype=F64, generator=g)
 
+        def act(t: int, x: torch.Tensor, rows: slice) -> torch.Tensor:
+            return push[rows, t] if t < 3 else -0.5 * task.model.stopping(x)
 
-def test_the_trip_speeds_follow_the_data_step_by_step() -> None:
-    """With a window w, step t's trip speed is the margin times D_g's largest speed from step
-    t - w on (written out by loops here); a window as long as the rollout is the largest over
-    every step at every step."""
-    x, u, _ = _known_system()
-    speeds = x[..., LAYOUT.qd].abs()  # [M, T+1, n]
-    for window in (0, 2, 5):
-        guard = fit_guard(x, u, u, LAYOUT, None, 2.0, window, None, 0.5)
-        assert guard.speed.shape == speeds.shape[1:]
-        for t in range(speeds.shape[1]):
-            near = speeds[:, max(0, t - window) :]
-            torch.testing.assert_close(guard.speed_at(t), 2.0 * near.amax((0, 1)))
-    whole = fit_guard(x, u, u, LAYOUT, None, 2.0, x.shape[1], None, 0.5)
-    every = fit_guard(x, u, u, LAYOUT, None, 2.0, None, None, 0.5)
-    for t in range(x.shape[1] + 3):  # past the last row: the last row
-        torch.testing.assert_close(whole.speed_at(t), every.speed_at(t))
-
-
-def test_the_retreat_is_the_datas_largest_plus_the_margin() -> None:
-    """rho = margin + the largest rise of a rollout's tip distance above its smallest so far
-    (written out by loops here); no margin: no retreat trips the brake."""
-    x, u, _ = _known_system()
-    g = torch.Generator().manual_seed(3)
-    x[..., LAYOUT.points] = torch.randn(*x.shape[:2], 6, dtype=F64, generator=g)
-    distance = x[..., LAYOUT.points][..., :3].norm(dim=-1)
-    largest = max(
-        float(distance[m, t] - distance[m, : t + 1].min())
-        for m in range(x.shape[0])
-        for t in range(x.shape[1])
-    )
-    guard = fit_guard(x, u, u, LAYOUT, None, 2.0, 3, 0.05, 0.5)
-    torch.testing.assert_close(guard.retreat, torch.tensor(largest + 0.05, dtype=F64))
-    assert torch.isinf(fit_guard(x, u, u, LAYOUT, None, 2.0, 3, None, 0.5).retreat)
+        x, _, _ = task.sampler.rollout(act, [(0.0, 0.0)] * 3)
+        before, after = x[:, 3], x[:, 4]
+        q, qd = before[:, lay.q], before[:, lay.qd]
+        batched = (task.model.urdf.mass_matrix(q) @ qd[..., None])[..., 0] / dt
+        torch.testing.assert_close(task.model.stopping(before), batched, rtol=1e-12, atol=1e-12)
+        assert float(qd.norm(dim=-1).amin()) > 0.5  # the arm moves
+        assert (after[:, lay.qd].norm(dim=-1) < 0.5 * qd.norm(dim=-1)).all()
+        predicted = task.model(before, -0.5 * task.model.stopping(before))
+        torch.testing.assert_close(predicted[:, lay.qd], after[:, lay.qd], rtol=0, atol=1e-6)
+    finally:
+        task.close()
 
 
 def _states(qd: list[list[float]], distance: list[float]) -> torch.Tensor:
@@ -93,40 +76,46 @@ def _states(qd: list[list[float]], distance: list[float]) -> torch.Tensor:
     return x
 
 
+def _speeds(x: torch.Tensor) -> torch.Tensor:
+    """The stopping torque of a two-joint arm of unit inertias and a control step of 1 s."""
+    return x[..., LAYOUT.qd]
+
+
 def test_the_guard_bounds_torques_and_brakes_while_a_bound_is_passed() -> None:
     guard = Guard(
         torch.tensor([1.0, 2.0], dtype=F64),
         torch.tensor([[1.0, 1.0]], dtype=F64),
-        -torch.eye(2, dtype=F64),
+        torch.tensor(1.0, dtype=F64),
         torch.tensor(0.1, dtype=F64),
     )
     u = torch.tensor([[5.0, -5.0], [0.5, 0.5], [0.5, 0.5], [0.5, 0.5]], dtype=F64)
     x = _states([[0.0, 0.0], [0.5, 1.5], [0.5, 0.5], [0.5, 0.5]], [0.3, 0.3, 0.3, 0.3])
     closest = torch.tensor([torch.inf, torch.inf, 0.15, 0.25], dtype=F64)
-    out, nearest = guarded(u, x, LAYOUT, closest, guard, 0)
+    out, nearest = guarded(u, x, LAYOUT, closest, guard, 0, _speeds)
     # row 0 is clipped; row 1 passes a speed; row 2 has retreated 0.15 m > 0.1 m; row 3 0.05 m
     assert out.tolist() == [[1.0, -2.0], [-0.5, -1.5], [-0.5, -0.5], [0.5, 0.5]]
     assert nearest.tolist() == [0.3, 0.3, 0.15, 0.25]
     # nothing is latched: a slow state near its closest approach acts again
     slow = _states([[0.5, 0.5]] * 4, [0.2] * 4)
-    assert torch.equal(guarded(u, slow, LAYOUT, nearest, guard, 1)[0][1:], u[1:])
+    assert torch.equal(guarded(u, slow, LAYOUT, nearest, guard, 1, _speeds)[0][1:], u[1:])
     off = Guard.off(2)
-    assert torch.equal(guarded(u, x, LAYOUT, closest, off, 0)[0], u)
+    assert torch.equal(guarded(u, x, LAYOUT, closest, off, 0, _speeds)[0], u)
     # per-step trip speeds: the same speeds pass at step 0 and brake at step 1
     stepped = guard._replace(speed=torch.tensor([[2.0, 2.0], [1.0, 1.0]], dtype=F64))
     fresh = torch.full((4,), torch.inf, dtype=F64)
-    assert torch.equal(guarded(u, x, LAYOUT, fresh, stepped, 0)[0][1], u[1])
+    assert torch.equal(guarded(u, x, LAYOUT, fresh, stepped, 0, _speeds)[0][1], u[1])
     for t in (1, 7):
         assert torch.equal(
-            guarded(u, x, LAYOUT, fresh, stepped, t)[0][1], torch.tensor([-0.5, -1.5], dtype=F64)
+            guarded(u, x, LAYOUT, fresh, stepped, t, _speeds)[0][1],
+            torch.tensor([-0.5, -1.5], dtype=F64),
         )
 
 
 def test_the_actor_tracks_each_rollouts_closest_approach(tmp_path: Path) -> None:
     policy = GaussianPolicy(LAYOUT.dX, LAYOUT.dU)
     policy.set_guard(Guard(torch.full((2,), 1e6, dtype=F64), torch.ones(1, 2, dtype=F64),
-                           -torch.eye(2, dtype=F64), torch.tensor(0.05, dtype=F64)))  # fmt: skip
-    actor = policy_actor(policy)
+                           torch.tensor(1.0, dtype=F64), torch.tensor(0.05, dtype=F64)))  # fmt: skip
+    actor = policy_actor(policy, _speeds)
     near, far = _states([[0.0, 0.0]] * 2, [0.1, 0.1]), _states([[0.0, 0.0]] * 2, [0.1, 0.2])
     actor(0, near, slice(0, 2))
     held = actor(1, far, slice(0, 2))
@@ -154,6 +143,16 @@ def test_the_actor_tracks_each_rollouts_closest_approach(tmp_path: Path) -> None
     )
     assert torch.equal(old.guard.speed, torch.ones(1, 2, dtype=F64))
     assert torch.isinf(old.guard.retreat)
+    # a policy saved with a fitted gain matrix (before the model's brake) brakes its share,
+    # and one saved unguarded (a zero matrix) not at all
+    for matrix, share in ((-torch.eye(2, dtype=F64), 0.5), (torch.zeros(2, 2, dtype=F64), 0.0)):
+        braked = GaussianPolicy.from_state(policy.description(), {**state, "guard_brake": matrix})
+        assert braked.guard.brake.shape == () and float(braked.guard.brake) == share
+
+
+def _rowwise_stopping(inertia: torch.Tensor, layout: StateLayout, x: torch.Tensor) -> torch.Tensor:
+    """``inertia q-dot`` row by row (:func:`matmul_rows`)."""
+    return matmul_rows(x[..., layout.qd], inertia)
 
 
 def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
@@ -168,13 +167,13 @@ def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
         policy.x_mean.normal_(generator=g)
         policy.x_std.uniform_(0.5, 2.0, generator=g)
     layout = StateLayout(dU)
-    brake = torch.randn(dU, dU, dtype=F64, generator=g)
+    inertia = torch.randn(dU, dU, dtype=F64, generator=g)
     policy.set_guard(Guard(torch.full((dU,), 50.0, dtype=F64), torch.full((1, dU), 2.0, dtype=F64),
-                           brake, torch.tensor(0.05, dtype=F64)))  # fmt: skip
+                           torch.tensor(0.5, dtype=F64), torch.tensor(0.05, dtype=F64)))  # fmt: skip
     x = torch.randn(n, dX, dtype=F64, generator=g)
     x[::3, layout.qd] *= 4.0  # rows 0, 3, 6, 9 trip the brake
     noise = torch.randn(n, 3, dU, dtype=F64, generator=g)
-    actor = policy_actor(policy, noise)
+    actor = policy_actor(policy, functools.partial(_rowwise_stopping, inertia, layout), noise)
     assert isinstance(actor, Rowwise)
     alone = torch.cat([actor.rowwise()(2, x[i : i + 1], slice(i, i + 1)) for i in range(n)])
     for size in (2, 5, 12):
@@ -182,5 +181,5 @@ def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
             rows = slice(start, start + size)
             assert torch.equal(actor.rowwise()(2, x[rows], rows), alone[rows])
     torch.testing.assert_close(actor(2, x, slice(0, n)), alone, rtol=0, atol=1e-12)
-    braked = (x[::3, layout.qd] @ brake.T).clamp(-50.0, 50.0)
+    braked = (-0.5 * x[::3, layout.qd] @ inertia.T).clamp(-50.0, 50.0)
     torch.testing.assert_close(alone[::3], braked, rtol=0, atol=1e-12)  # the brake acts

@@ -160,7 +160,7 @@ def run_jobs(
             for process in processes:
                 process.start()  # the workers import while this process builds the task
         peg = PegTask(task, n_worlds=n_worlds)
-        roller = PolicyRoller(peg.sampler, peg.layout, policies)
+        roller = PolicyRoller(peg.sampler, peg.model, policies)
         for _ in processes:
             setups.put(_setup(peg, n_worlds, policies))
         found: dict[int, JobResult] = {}
@@ -199,7 +199,7 @@ def run_jobs_on_ray(
     with ray_connection(ray, address, num_cpus) as slots:
         peg = PegTask(task, n_worlds=n_worlds)
         try:
-            PolicyRoller(peg.sampler, peg.layout, policies)  # the policies' sizes, checked here
+            PolicyRoller(peg.sampler, peg.model, policies)  # the policies' sizes, checked here
             roller = ray.remote(num_cpus=1)(SetupRoller)
             setup = ray.put(_setup(peg, n_worlds, policies))
             actors = [roller.remote(setup) for _ in range(max(1, min(slots, len(jobs))))]

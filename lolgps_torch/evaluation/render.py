@@ -120,7 +120,9 @@ def record_clips(
     offsets = [records[c].offset for c in conditions]
     clips: dict[tuple[str, int], Clip] = {}
     if who in ("policy", "both"):
-        x, _, _ = task.sampler.rollout(policy_actor(loaded.policy(after)), offsets)
+        x, _, _ = task.sampler.rollout(
+            policy_actor(loaded.policy(after), task.model.stopping), offsets
+        )
         for c, off, xs in zip(conditions, offsets, x, strict=True):
             clips["policy", c] = _clip(task, "policy", c, off, xs)
     if who in ("controller", "both"):

@@ -63,7 +63,11 @@ def retention(loaded: LoadedRun) -> dict[str, Any]:
     try:
         for record in loaded.records:
             policy = loaded.policy(record.condition)
-            distance.append(task.sample(policy_actor(policy), offsets).final_distance.tolist())
+            distance.append(
+                task.sample(
+                    policy_actor(policy, task.model.stopping), offsets
+                ).final_distance.tolist()
+            )
             fit.append([_mean_fit(policy, r.samples) for r in loaded.records])
     finally:
         task.close()

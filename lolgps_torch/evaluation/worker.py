@@ -25,10 +25,10 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.policy.actor import policy_actor
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
 from lolgps_torch.sim.rollout import Sampler
 from lolgps_torch.sim.simulator import Simulator, WorldConfig
-from lolgps_torch.state import StateLayout
 
 Position = tuple[float, float]
 
@@ -113,13 +113,14 @@ class RolloutSetup:
 
 class PolicyRoller:
     """Noiseless rollouts (``u_t = mu_theta(x_t)``) of global policies in the worlds of
-    ``sampler``, whose states and actions are laid out by ``layout``; a policy of other sizes
-    is a :class:`LolgpsError`. The sampler stays its owner's to close."""
+    ``sampler``, whose states and actions are laid out as ``model``'s, the arm's model whose
+    brake the policies' guards use; a policy of other sizes is a :class:`LolgpsError`. The
+    sampler stays its owner's to close."""
 
     def __init__(
-        self, sampler: Sampler, layout: StateLayout, policies: Sequence[PolicyState]
+        self, sampler: Sampler, model: ControlStep, policies: Sequence[PolicyState]
     ) -> None:
-        self.sampler = sampler
+        self.sampler, self.stopping, layout = sampler, model.stopping, model.layout
         self.policies = [state.build().eval() for state in policies]
         for state, policy in zip(policies, self.policies, strict=True):
             if (policy.dX, policy.dU) != (layout.dX, layout.dU):
@@ -130,7 +131,7 @@ class PolicyRoller:
 
     def __call__(self, job: Job) -> Rollouts:
         """One rollout per position of ``job``."""
-        actor = policy_actor(self.policies[job.policy])
+        actor = policy_actor(self.policies[job.policy], self.stopping)
         x, u, final = self.sampler.rollout(actor, list(job.positions))
         return Rollouts(x.numpy(), u.numpy(), final.numpy())
 
@@ -142,7 +143,7 @@ class SetupRoller:
     def __init__(self, setup: RolloutSetup) -> None:
         torch.set_num_threads(1)
         self.roller = PolicyRoller(
-            setup.sampler(), setup.world.layout(setup.arm.dof), setup.policies
+            setup.sampler(), ControlStep(setup.arm, setup.world), setup.policies
         )
 
     def roll(self, index: int, job: Job) -> tuple[int, Rollouts]:
@@ -170,7 +171,7 @@ def run_worker(
     torch.set_num_threads(1)
     try:
         setup = setups.get()
-        roller = PolicyRoller(setup.sampler(), setup.world.layout(setup.arm.dof), setup.policies)
+        roller = PolicyRoller(setup.sampler(), ControlStep(setup.arm, setup.world), setup.policies)
         while (index := next_job(counter, len(jobs))) is not None:
             results.put((index, roller(jobs[index])))
     except LolgpsError as error:

@@ -44,10 +44,10 @@ def guard_of(data: list[ConditionSamples], layout: StateLayout, cfg: PolicyConfi
     if not full:
         return None
     x = torch.cat([torch.cat([d.x, d.final_state[:, None]], 1) for d in full])  # type: ignore[index]  # final_state checked above
-    u, mean_cur = torch.cat([d.u for d in full]), torch.cat([d.mean_cur for d in full])
+    mean_cur = torch.cat([d.mean_cur for d in full])
     with intra_op_threads(cfg.num_threads):  # as the S-step: the same bits in any process
         return fit_guard(
-            x, u, mean_cur, layout, cfg.guard_torque, cfg.guard_speed, cfg.guard_window,
+            x, mean_cur, layout, cfg.guard_torque, cfg.guard_speed, cfg.guard_window,
             cfg.guard_retreat, cfg.guard_brake,
         )  # fmt: skip
 

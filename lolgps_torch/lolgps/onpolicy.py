@@ -124,7 +124,9 @@ class PolicyVisits:
         noise = torch.randn(C * noisy, T, dU, generator=gen, dtype=torch.float64)
         noise = torch.cat([noise.new_zeros(C, T, dU), noise]).to(self.task.device)
         try:
-            runs: Trajectories = self.task.sample(policy_actor(policy, noise), offsets)
+            runs: Trajectories = self.task.sample(
+                policy_actor(policy, self.task.model.stopping, noise), offsets
+            )
         except NumericalError:
             return Visit([math.inf] * C, None, len(offsets))
         parts = [

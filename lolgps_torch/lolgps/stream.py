@@ -384,6 +384,8 @@ def policy_distances(
     if not policy.trained:
         return [float("nan")] * len(offsets)
     try:
-        return task.sample(policy_actor(policy), offsets).final_distance.tolist()
+        return task.sample(
+            policy_actor(policy, task.model.stopping), offsets
+        ).final_distance.tolist()
     except NumericalError:
         return [math.inf] * len(offsets)

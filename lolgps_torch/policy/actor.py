@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
-from lolgps_torch.policy.guard import guarded
+from lolgps_torch.policy.guard import Stopping, guarded
 from lolgps_torch.policy.net import GaussianPolicy
 from lolgps_torch.sim.rollout import Actor, matmul_rows
 from lolgps_torch.state import StateLayout
@@ -16,19 +16,21 @@ from lolgps_torch.state import StateLayout
 @dataclass
 class PolicyActor:
     """``u_t = mu_theta(x_t) + shifted_t`` for the batch's rows ``rows`` (no noise when
-    ``shifted`` is None), through the policy's guard (:func:`guarded`), which remembers per
-    row the tip's closest approach to its target in this rollout (``closest``, m, grown to the
-    rows seen, forgotten at t = 0); plain data, so that it can be sent to a worker process.
-    ``by_rows``: the row-wise form (:meth:`rowwise`)."""
+    ``shifted`` is None), through the policy's guard (:func:`guarded`, braking by the arm's
+    model ``stopping``), which remembers per row the tip's closest approach to its target in
+    this rollout (``closest``, m, grown to the rows seen, forgotten at t = 0); plain data, so
+    that it can be sent to a worker process. ``by_rows``: the row-wise form
+    (:meth:`rowwise`)."""
 
     policy: GaussianPolicy
+    stopping: Stopping
     shifted: Tensor | None  # [N, T, dU]: chol(Sigma_pi) eps_t per rollout
     closest: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.float64))
     by_rows: bool = False
 
     def rowwise(self) -> Actor:
-        """The same actor computing each row alone (every matrix product of the policy and of
-        the guard's brake by :func:`matmul_rows`), for rows stepped together."""
+        """The same actor computing each row alone (every matrix product of the policy by
+        :func:`matmul_rows`; the brake is row by row already), for rows stepped together."""
         return replace(self, closest=torch.zeros(0, dtype=torch.float64), by_rows=True)
 
     def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
@@ -42,18 +44,18 @@ class PolicyActor:
             self.closest = grown
         if t == 0:
             self.closest[start:stop] = torch.inf
-        rowwise = (matmul_rows,) if self.by_rows else ()  # else guarded's own x @ A^T
         u, self.closest[start:stop] = guarded(
             u, x, StateLayout(self.policy.dU), self.closest[start:stop], self.policy.guard, t,
-            *rowwise,
+            self.stopping,
         )  # fmt: skip
         return u
 
 
-def policy_actor(policy: GaussianPolicy, noise: Tensor | None = None) -> Actor:
+def policy_actor(policy: GaussianPolicy, stopping: Stopping, noise: Tensor | None = None) -> Actor:
     """The global policy: its mean action, plus ``chol(Sigma_pi) eps_t`` when given noise
-    ``eps: [N, T, dU]``, through its guard."""
+    ``eps: [N, T, dU]``, through its guard, whose brake stops the joints by ``stopping``
+    (``ControlStep.stopping`` of the arm's model)."""
     if noise is None:
-        return PolicyActor(policy, None)
+        return PolicyActor(policy, stopping, None)
     L = torch.linalg.cholesky(policy.covariance()).detach()
-    return PolicyActor(policy, noise @ L.T)
+    return PolicyActor(policy, stopping, noise @ L.T)

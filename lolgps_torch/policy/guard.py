@@ -6,7 +6,7 @@ keeps the policy inside what its teachers did, with bounds fitted to every condi
 
     u_t = clip(mu_theta(x_t) (+ noise), -tau, tau)      tau_j = torque_margin max |mu_cur,j|
     while |q-dot_j(t)| > v_j(t) for some joint, or d_t - min_{s <= t} d_s > rho:
-        u_t = clip(-beta B^-1 q-dot_t, -tau, tau)
+        u_t = clip(-beta M(q_t) q-dot_t / dt, -tau, tau)
     v_j(t) = speed_margin max_{m, s >= t - w} |q-dot_j^m(s)|
     rho = retreat_margin + max_{m, t} (d^m_t - min_{s <= t} d^m_s)
 
@@ -23,10 +23,14 @@ than it started). The retreat rho stops what the speeds miss, a slow rise away f
 late in the rollout: the teachers seldom move the tip away from their closest approach (on the
 KUKA by 6-16 mm at most), and the brake then holds for as long as the tip stays away.
 
-with ``B`` the arm's response to a torque over one control step fitted to D_g's transitions by
-least squares, ``q-dot_{t+1} - q-dot_t ~ B u_t + c``: the brake takes ``beta`` of the joint
-speeds away per control step (the arm's inertia, coupling included, from the data, with no
-model), so the arm stops where it left the speeds its teachers used.
+with ``M(q)`` the mass matrix of the arm's URDF model at the current pose and dt the control
+step: the brake takes ``beta`` of the joint speeds away per control step, coupling included,
+wherever the arm is, so the arm stops where it left the speeds its teachers used. (A brake
+fitted to D_g's transitions, ``q-dot_{t+1} - q-dot_t ~ B u_t + c`` by least squares, with
+``-beta B^-1`` in place of ``-beta M(q) / dt``, matched the arm only near the data: by the
+model, its step multiplied the speeds by up to 4 at the Panda's mean pose in D_g and by over
+10 at most poses within the joint limits, so it flung what it should have stopped;
+``scripts/research/brake_gain.py``.)
 """
 
 from __future__ import annotations
@@ -44,9 +48,9 @@ from lolgps_torch.state import StateLayout
 
 class Guard(NamedTuple):
     """Torque bounds ``tau [dU]``, the speeds ``v [S, dU]`` that trip the brake (row ``t`` at
-    step ``t``, the last row from there on: ``S = 1`` is one speed for every step), the
-    brake's gain ``-beta B^-1``, ``[dU, dU]``, and the tip's retreat ``rho`` (m, a 0-d tensor;
-    inf: none) that trips it (module docstring)."""
+    step ``t``, the last row from there on: ``S = 1`` is one speed for every step), the share
+    ``beta`` of the joint speeds the brake takes away per control step (0-d; 0: none) and the
+    tip's retreat ``rho`` (m, 0-d; inf: none) that trips it (module docstring)."""
 
     torque: Tensor
     speed: Tensor
@@ -57,8 +61,7 @@ class Guard(NamedTuple):
     def off(cls, dU: int, device: torch.device | str = "cpu") -> Guard:
         """A guard that never acts: unbounded torques and speeds."""
         inf = torch.full((dU,), float("inf"), dtype=torch.float64, device=device)
-        zeros = torch.zeros(dU, dU, dtype=torch.float64, device=device)
-        return cls(inf, inf[None].clone(), zeros, inf[0].clone())
+        return cls(inf, inf[None].clone(), torch.zeros_like(inf[0]), inf[0].clone())
 
     def speed_at(self, t: int) -> Tensor:
         """The trip speeds at step ``t``, ``[dU]``."""
@@ -67,7 +70,6 @@ class Guard(NamedTuple):
 
 def fit_guard(
     x: Tensor,
-    u: Tensor,
     mean_cur: Tensor,
     layout: StateLayout,
     torque_margin: float | None,
@@ -77,20 +79,13 @@ def fit_guard(
     beta: float,
 ) -> Guard:
     """The guard of rollouts with states ``x: [M, T+1, dX]`` (``x_T`` the state after the last
-    action; its blocks as ``layout`` says), actions ``u: [M, T, dU]`` and teacher means
-    ``mean_cur: [M, T, dU]`` (M >= 1); ``torque_margin`` None leaves torques unbounded;
+    action; its blocks as ``layout`` says) and teacher means ``mean_cur: [M, T, dU]`` (M >= 1),
+    braking ``beta`` of the speeds away per step; ``torque_margin`` None leaves torques unbounded;
     ``window`` the steps before t from which on D_g's largest speed sets step t's trip speed
     (None: over every step); ``retreat_margin`` None: no retreat trips the brake."""
     if x.shape[0] == 0:
         raise LolgpsError("the policy's guard needs at least one rollout")
     speeds = x[..., layout.qd]  # [M, T+1, n]
-    change = (speeds[:, 1:] - speeds[:, :-1]).flatten(0, 1)  # [M T, n]
-    actions = u.flatten(0, 1)
-    design = torch.cat([actions, torch.ones_like(actions[:, :1])], dim=1)  # [M T, dU + 1]
-    # least squares by the normal equations, a (dU + 1)-sized solve: the same bits in every
-    # process (LAPACK's least-squares and SVD drivers are not)
-    solution = torch.linalg.solve(design.T @ design, design.T @ change)  # [dU + 1, n]
-    B = solution[:-1].T  # [n, dU]
     largest = mean_cur.abs().flatten(0, 1).amax(0)
     torque = (
         torch.full_like(largest, math.inf) if torque_margin is None else torque_margin * largest
@@ -105,12 +100,15 @@ def fit_guard(
     distance = tip_distance(x, layout)  # [M, T+1]
     retreat = (distance - distance.cummin(1).values).amax()
     retreat = retreat + (math.inf if retreat_margin is None else retreat_margin)
-    return Guard(torque, speed_margin * envelope, -beta * torch.linalg.inv(B), retreat)
+    return Guard(torque, speed_margin * envelope, torch.tensor(beta).to(torque), retreat)
 
 
 def tip_distance(x: Tensor, layout: StateLayout) -> Tensor:
     """``d = |p_tip - p*_tip|`` of states ``x: [..., dX]`` -> ``[...]``."""
     return x[..., layout.points][..., :3].norm(dim=-1)
+
+
+Stopping = Callable[[Tensor], Tensor]  # states [n, dX] -> M(q) q-dot / dt, [n, dU]
 
 
 def guarded(
@@ -120,14 +118,19 @@ def guarded(
     closest: Tensor,
     guard: Guard,
     t: int,
-    product: Callable[[Tensor, Tensor], Tensor] = lambda x, A: x @ A.T,
+    stopping: Stopping,
 ) -> tuple[Tensor, Tensor]:
     """Actions ``u: [n, dU]`` at step ``t`` and states ``x: [n, dX]`` (blocks as ``layout``)
     through the guard, given each rollout's closest approach to its target before ``t``
     (``closest [n]``, m; inf at the start); returns the actions and the closest approach up
-    to ``t``. ``product(x, A)`` is ``x @ A^T`` (a row-wise form of it for lockstep rollouts)."""
+    to ``t``. ``stopping(x)`` is the torque that stops the joints within one control step,
+    ``M(q) q-dot / dt`` (evaluated only where a row brakes)."""
     qd, distance = x[..., layout.qd], tip_distance(x, layout)
     closest = torch.minimum(closest, distance)
     braking = (qd.abs() > guard.speed_at(t)).any(-1) | (distance - closest > guard.retreat)
-    held = torch.where(braking[:, None], product(qd, guard.brake), u)
+    held = u
+    if bool(braking.any()):
+        brake = torch.zeros_like(u)
+        brake[braking] = -guard.brake * stopping(x[braking])
+        held = torch.where(braking[:, None], brake, u)
     return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest

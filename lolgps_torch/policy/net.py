@@ -296,6 +296,12 @@ class GaussianPolicy(torch.nn.Module):
             # checkpoints from before the guard: unguarded
             state = {**{k: v for k, v in policy.state_dict().items() if k.startswith("guard_")},
                      **state}  # fmt: skip
+            # checkpoints from before the model's brake: a fitted gain matrix, now the share
+            if state["guard_brake"].ndim == 2:
+                braked = bool(state["guard_brake"].any())
+                state["guard_brake"] = policy.guard_brake.new_tensor(
+                    policy.config.guard_brake if braked else 0.0
+                )
             # checkpoints from before the per-step trip speeds: one row for every step
             speed = state["guard_speed"]
             policy.guard_speed = torch.empty_like(speed if speed.ndim == 2 else speed[None])

@@ -77,6 +77,17 @@ class ControlStep:
             [q, qd, x[..., lay.points] + moved, moved / self.config.dt, self._shifted(x, u)], -1
         )
 
+    def stopping(self, x: Tensor) -> Tensor:
+        """The torque that stops the joints of states ``x: [n, dX]`` within one control step by
+        the URDF's model, ``M(q) q-dot / dt`` (``[n, dU]``, gravity compensated, Coriolis and
+        damping left out); each row computed alone, so its bits do not depend on the others."""
+        lay = self.layout
+        rows = [
+            (self.urdf.mass_matrix(q[None])[0] * qd).sum(-1)
+            for q, qd in zip(x[:, lay.q], x[:, lay.qd], strict=True)
+        ]
+        return torch.stack(rows) / self.config.dt
+
     def _commands(self, x: Tensor, u: Tensor) -> Tensor:
         """``[u_t, u_{t-1}, ..., u_{t-h}]: [..., h+1, dU]`` from the state's action history."""
         past = x[..., self.layout.actions].unflatten(-1, (self.layout.history, self.layout.dU))

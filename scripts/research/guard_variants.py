@@ -16,8 +16,8 @@ conditions up to each checkpoint), at ``--speed`` times (default: the run's marg
 largest speed from W steps before each step on. ``--retreat R`` fits the retreat that trips the
 brake to the replay as well, R metres beyond D_g's largest (a run trained before the retreat
 trip has none); with either, ``--torque T`` is fitted to the replay too, T times the largest
-teacher torque (a run trained without a bound has none to rescale). ``--brake B`` scales the brake's gain to take B of the joint speeds away per
-control step instead of the run's share (default: the run's). The policies themselves are the runs' own, so
+teacher torque (a run trained without a bound has none to rescale). ``--brake B`` has the brake take B of the joint speeds away per control
+step instead of the run's share (default: the run's). The policies themselves are the runs' own, so
 only acting (by this checkout's guard) changes; compare with
 ``scripts/research/seed_table.py RUNS DIR --label trained variant``.
 """
@@ -115,9 +115,7 @@ def reguarded(
         torque = guard.torque * (args.torque / trained["guard_torque"])
     else:
         torque = guard.torque
-    brake = (
-        guard.brake if args.brake is None else guard.brake * (args.brake / trained["guard_brake"])
-    )
+    brake = guard.brake if args.brake is None else torch.tensor(args.brake).to(guard.brake)
     return Guard(torque, speed, brake, retreat)
 
 

@@ -1,12 +1,12 @@
 """Where one stream S-step's time goes, rebuilt from a finished run (paper eq. 8).
 
     python scripts/research/sstep_profile.py --run DIR [--condition K] [--repeats 2]
-        [--actions FILE] [--against FILE]
+        [--adam-dtype float32|float64] [--actions FILE] [--against FILE]
 
 The S-step of condition ``K`` (default: the last) is rebuilt as the stream ran it: the replay
 of conditions ``0 .. K-1`` (copied into a temporary replay file), condition ``K``'s D_g as the
 new item labelled by its stored controllers, and the policy checkpointed after ``K - 1``, with
-the run's S-step settings. It prints the rows, then the seconds (best of ``--repeats``, CPU
+the run's S-step settings (``--adam-dtype`` in place of the run's loop type). It prints the rows, then the seconds (best of ``--repeats``, CPU
 time of this process) of each part: reading the replay, the new D_g's perturbed copies, the
 statistics and constant terms, the Adam loop (the whole call less those, with the rows' rewrite
 into the net's units), and one closed-loop check (the policy's noiseless rollouts at the
@@ -31,7 +31,8 @@ import argparse
 import tempfile
 import time
 from collections.abc import Callable
-from typing import Any
+from dataclasses import replace
+from typing import Any, get_args
 
 import torch
 
@@ -43,6 +44,7 @@ from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
 from lolgps_torch.lolgps.run import load_run
 from lolgps_torch.lolgps.stream import policy_distances
 from lolgps_torch.policy import GaussianPolicy
+from lolgps_torch.policy.net import AdamDtype
 from lolgps_torch.policy.sstep import _row_constants, set_statistics
 from lolgps_torch.types import DistillBatch
 
@@ -54,6 +56,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--run", required=True, help="finished run folder")
     parser.add_argument("--condition", type=int, default=None, help="(default: the last)")
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument(
+        "--adam-dtype", choices=get_args(AdamDtype), default=None, help="(default: the run's)"
+    )
     parser.add_argument("--actions", default=None, help="save the fitted policy's actions here")
     parser.add_argument("--against", default=None, help="compare them with this saved file")
     return parser.parse_args()
@@ -105,6 +110,8 @@ def main() -> None:
         else GaussianPolicy(task.layout.dX, task.layout.dU, loaded.policy(0).config)
     )
     config = policy.config
+    if args.adam_dtype is not None:
+        config = replace(config, adam_dtype=args.adam_dtype)
     labels = Labels(record.p_cur, record.p_pre, record.iterations)
     item = Labelled(record.offset, record.samples, labels)
     with tempfile.TemporaryDirectory() as tmp:
