@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 from test_replay import make_samples
@@ -91,6 +92,8 @@ class _BlowingUp:
     """A task whose every batch of rollouts blows the simulation up."""
 
     layout, device, T = LAYOUT, torch.device("cpu"), T
+
+    model = SimpleNamespace(stopping=lambda x: x[..., LAYOUT.qd])  # the brake's model
 
     def sample(self, actor: object, offsets: object) -> None:
         raise NumericalError("the simulation blew up: joint speed 119 rad/s (bound 100)")
