@@ -50,6 +50,7 @@ from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.simulator import Simulator, World, WorldConfig, check_plant, require
+from lolgps_torch.sim.world import PegWorld
 from lolgps_torch.types import Trajectories
 
 IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses
@@ -311,22 +312,41 @@ class PegTask:
         parts = zip(*self._seen, strict=True)
         self._seen = [Transitions(*(torch.cat(list(part))[-keep:] for part in parts))]
 
-    def one_step_errors(self, samples: Trajectories) -> tuple[float, float, int]:
+    def one_step_errors(self, samples: Trajectories) -> tuple[float, float, float, int]:
         """The root-mean-square joint-velocity error (rad/s) of one control step predicted by
-        :attr:`model` and by the URDF's model, over the free transitions of ``samples``
+        :attr:`model`, by the URDF's model and by the simulated arm's own
+        (:meth:`plant_model`), over the free transitions of ``samples``
         (:meth:`free_transitions`), and how many there are (NaN errors where none)."""
         x, free = self.free_transitions(samples)
         before, after, u = x[:, :-1][free], x[:, 1:][free], samples.u[free]
         if before.shape[0] == 0:
-            return math.nan, math.nan, 0
+            return math.nan, math.nan, math.nan, 0
         qd = self.layout.qd
         urdf = ControlStep(self.arm, self.config.world, device=self.device)
         with torch.no_grad():
             errors = [
                 float((model(before, u)[:, qd] - after[:, qd]).square().mean().sqrt())
-                for model in (self.model, urdf)
+                for model in (self.model, urdf, self.plant_model())
             ]
-        return errors[0], errors[1], int(before.shape[0])
+        return errors[0], errors[1], errors[2], int(before.shape[0])
+
+    def plant_model(self) -> ControlStep:
+        """The control step of the arm as the simulator has it (:meth:`PegWorld.plant_urdf`:
+        the plant's link masses, inertias and payload) under the gravity compensation the
+        plant and the learner apply: the model built from the true plant, which an identified
+        one can at best match (joint friction, sensor noise and an unknown delay left out, as
+        in every model here; an arm compensated by itself and by the learner too is modelled
+        with twice its own gravity)."""
+        plant, learner = self.config.plant, float(self.config.world.compensate_gravity)
+        with probe_world(self.config) as (world, _):
+            text = world.plant_urdf() if isinstance(world, PegWorld) else self.arm.urdf_text
+        simulated = replace(self.arm, urdf_text=text)
+        exact = ControlStep(simulated, self.config.world, self.device)
+        if plant.gravity_compensation == "plant":  # the simulated body's own gravity
+            own = (exact.urdf, 1.0 + learner)
+            return ControlStep(simulated, self.config.world, self.device, own)
+        kappa = float(plant.gravity_compensation == "model") + learner  # the URDF's
+        return ControlStep(self.arm, self.config.world, self.device, (exact.urdf, kappa))
 
     def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
         """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the

@@ -274,7 +274,8 @@ def _record_line(record: IterationRecord | IdentifiedRecord | DistillRecord, tot
             f"condition {record.condition + 1}/{total}  arm identified: payload "
             f"{record.payload:.3f} kg, gravity compensation x {record.compensation:.3f}; one-step "
             f"joint-speed error on its first rollouts {record.error_identified:.4f} rad/s "
-            f"(URDF model {record.error_urdf:.4f}, {record.transitions} free transitions)"
+            f"(URDF model {record.error_urdf:.4f}, the simulated arm's own "
+            f"{record.error_plant:.4f}; {record.transitions} free transitions)"
         )
     return (
         f"condition {record.condition + 1}/{total}  iter {record.iteration:2d}  "

@@ -144,4 +144,5 @@ def test_the_learner_reports_the_identified_arm_on_unseen_rollouts() -> None:
     assert report.condition == 1 and report.transitions > 0
     assert report.payload == pytest.approx(1.0, rel=0.25)
     assert report.error_identified < 0.2 * report.error_urdf
+    assert report.error_plant < 1e-8  # the simulated arm's own model: exact without noise
     assert report.to_json()["event"] == "identified"

@@ -228,3 +228,31 @@ def test_a_bad_plant_flag_is_one_error_line(run_script: Callable[..., Any]) -> N
     run = run_script("scripts/run_stream.py", "--plant-inertia-scale", "1.5", "--out", "/x/y")
     assert run.code == 2
     assert run.err.strip() == "error: --plant-inertia-scale must be in [0, 1), got 1.5"
+
+
+@pytest.mark.parametrize("compensation", ["plant", "model", "none"])
+def test_the_simulated_arms_own_model_predicts_it(compensation: str) -> None:
+    """``PegTask.plant_model``, the model built from the true plant (each link's mass and
+    inertia scaled, a payload, the compensation the plant applies and, with none, the
+    learner's own), predicts the simulated arm's free transitions to rounding, where the
+    URDF's model misses."""
+    from lolgps_torch.controllers.noise import smoothed_noise
+    from lolgps_torch.lolgps.local import LocalConfig, initial_controller
+    from lolgps_torch.sim.rollout import linear_gaussian_actor
+    from lolgps_torch.task import PegTask
+
+    plant = PlantConfig(inertia_scale=0.3, seed=3, payload=1.0, gravity_compensation=compensation)  # type: ignore[arg-type]
+    world = WorldConfig(compensate_gravity=compensation == "none")
+    task = PegTask(TaskConfig(urdf=KUKA, world=world, plant=plant), n_worlds=2)
+    try:
+        noise = 0.3 * smoothed_noise(
+            2, task.T, task.layout.dU, 2.0, torch.Generator().manual_seed(0)
+        )
+        hold = linear_gaussian_actor(initial_controller(task, LocalConfig()), noise)
+        _, error_urdf, error_plant, transitions = task.one_step_errors(
+            task.sample(hold, [(0.0, 0.0)] * 2)
+        )
+    finally:
+        task.close()
+    assert transitions >= 4
+    assert error_plant < 1e-8 and error_urdf > 0.01

@@ -8,6 +8,7 @@ of ``metrics.jsonl``;
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Literal
 
@@ -45,7 +46,8 @@ class IdentifiedRecord:
     rollouts, which the identification has not seen: the payload (kg) and its position in the
     last body's frame (m), the gravity compensation's gain, the links' mass scales, and the
     root-mean-square joint-velocity error (rad/s) of one control step predicted by the
-    identified arm and by the URDF's, over those rollouts' ``transitions`` free of contact."""
+    identified arm, by the URDF's and by the simulated arm's own (the model built from the
+    true plant), over those rollouts' ``transitions`` free of contact."""
 
     condition: int
     payload: float
@@ -55,6 +57,7 @@ class IdentifiedRecord:
     error_identified: float
     error_urdf: float
     transitions: int
+    error_plant: float = math.nan
     event: Literal["identified"] = "identified"
 
     def to_json(self) -> dict[str, Any]:

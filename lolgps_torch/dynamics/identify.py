@@ -25,11 +25,19 @@ estimate under Gaussian torque noise σ_τ and a Gaussian prior centred on the U
 solved by Levenberg-Marquardt: Gauss-Newton steps ``(J^T J + λ diag(J^T J)) δ = -J^T R`` on
 the stacked, whitened residuals R, with the Jacobian J through the torch rigid-body model
 (:mod:`lolgps_torch.robot.rigid_body`) by forward-mode differentiation.
+
+σ_τ starts at ``IdentifyConfig.torque_noise`` for every joint; the MAP estimate is then solved
+again with each joint's σ_τ,j the root-mean-square of its residuals (never below that), so
+that noisy or ill-modelled joints weigh no more against the prior than their scatter says.
+Sensor noise on the joint velocities still biases the estimate (the accelerations that
+multiply the inertial parameters carry it: an error in the regressors, which least squares
+does not average away); ``scripts/research/identify_noise.py`` measures it.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import NamedTuple
 
@@ -45,7 +53,12 @@ from lolgps_torch.state import StateLayout
 class IdentifyConfig:
     """The identification's noise model, prior and solver.
 
-    :param torque_noise: σ_τ, the standard deviation of the torque residual (N m).
+    :param torque_noise: σ_τ, the standard deviation of the torque residual (N m), and the
+        least any joint's is taken to be.
+    :param noise_rounds: times the MAP estimate is solved again with each joint's σ_τ,j the
+        root-mean-square of its residuals at the last solution (floored at ``torque_noise``),
+        so that noisy observations weigh no more against the prior than their scatter says
+        (0: σ_τ for every joint throughout).
     :param scale_sd: prior standard deviation of each body's scale s_k.
     :param payload_sd: prior standard deviation of the payload's mass (kg).
     :param payload_com_sd: prior standard deviation of the payload's position (m).
@@ -59,6 +72,7 @@ class IdentifyConfig:
     """
 
     torque_noise: float = 0.5
+    noise_rounds: int = 1
     scale_sd: float = 0.3
     payload_sd: float = 2.0
     payload_com_sd: float = 0.1
@@ -72,7 +86,10 @@ class IdentifyConfig:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if not (math.isfinite(value) and value > 0):
+            if f.name == "noise_rounds":
+                if value < 0:
+                    raise LolgpsError(f"identification noise_rounds must be >= 0, got {value}")
+            elif not (math.isfinite(value) and value > 0):
                 raise LolgpsError(f"identification {f.name} must be positive, got {value}")
 
 
@@ -190,8 +207,10 @@ class TorqueBalance(NamedTuple):
         torque = u + params.compensation * self.dynamics.gravity_torque(q)
         return torch.minimum(torch.maximum(torque, -self.effort), self.effort)
 
-    def residual(self, params: ArmParameters, data: Transitions, config: IdentifyConfig) -> Tensor:
-        """``r / σ_τ: [B, n]`` (module docstring)."""
+    def residual(
+        self, params: ArmParameters, data: Transitions, config: IdentifyConfig, noise: Tensor
+    ) -> Tensor:
+        """``r / σ_τ: [B, n]`` (module docstring), with each joint's ``noise`` σ_τ ``[n]``."""
         dyn = identified_dynamics(self.dynamics, params)
         qm, qdm = (data.q0 + data.q1) / 2, (data.qd0 + data.qd1) / 2
         frames = dyn.frames(qm)
@@ -199,7 +218,7 @@ class TorqueBalance(NamedTuple):
         needed = dyn.inverse_dynamics_at(frames, qdm, (data.qd1 - data.qd0) / self.dt, wrench)
         needed = needed + dyn.joint_damping * qdm
         needed = needed + params.friction * torch.tanh(qdm / config.friction_speed)
-        return (needed - self.applied(params, data.q0, data.u)) / config.torque_noise
+        return (needed - self.applied(params, data.q0, data.u)) / noise
 
 
 def objective(
@@ -208,24 +227,45 @@ def objective(
     data: Transitions,
     config: IdentifyConfig,
     theta: Tensor,
+    noise: Tensor | None = None,
 ) -> Tensor:
     """The stacked whitened residuals R(θ) (torques, then the prior's), ``|R|^2`` the MAP
-    objective."""
+    objective, with each joint's σ_τ ``noise [n]`` (default: ``config.torque_noise``)."""
     params = prior.unflat(theta)
-    torques = balance.residual(params, data, config).reshape(-1)
+    if noise is None:
+        noise = torch.full_like(params.mass_scale, config.torque_noise)
+    torques = balance.residual(params, data, config, noise).reshape(-1)
     return torch.cat([torques, (theta - prior.flat()) / prior.prior_sd(config)])
 
 
 def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) -> ArmParameters:
-    """The MAP θ by Levenberg-Marquardt from the prior's centre (module docstring)."""
+    """The MAP θ by Levenberg-Marquardt from the prior's centre (module docstring), solved
+    again ``config.noise_rounds`` times with each joint's σ_τ from its residuals."""
     if data.q0.shape[0] == 0:
         raise LolgpsError("identification needs at least one transition")
     prior = ArmParameters.urdf(balance.dynamics)
 
-    def stacked(theta: Tensor) -> Tensor:
-        return objective(balance, prior, data, config, theta)
+    def solved(theta: Tensor, noise: Tensor) -> Tensor:
+        return _solve(lambda t: objective(balance, prior, data, config, t, noise), theta, config)
 
-    theta, damping = prior.flat(), 1e-3
+    noise = torch.full_like(prior.mass_scale, config.torque_noise)
+    theta = solved(prior.flat(), noise)
+    for _ in range(config.noise_rounds):
+        whitened = balance.residual(prior.unflat(theta), data, config, noise)
+        scatter = (whitened * noise).square().mean(0).sqrt().clamp_min(config.torque_noise)
+        if torch.equal(scatter, noise):
+            break
+        noise = scatter
+        theta = solved(theta, noise)
+    return prior.unflat(theta)
+
+
+def _solve(stacked: Callable[[Tensor], Tensor], theta: Tensor, config: IdentifyConfig) -> Tensor:
+    """Levenberg-Marquardt on the stacked residuals ``stacked(θ)`` from ``theta``: Gauss-Newton
+    steps ``(J^T J + λ diag(J^T J)) δ = -J^T R``, λ raised tenfold until a step lowers
+    ``|R|^2`` and lowered tenfold after it; at most ``config.iterations`` steps, ending once
+    one gains less than ``config.tolerance`` of the objective."""
+    damping = 1e-3
     residual = stacked(theta)
     cost = float(residual.square().sum())
     for _ in range(config.iterations):
@@ -248,4 +288,4 @@ def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) 
         damping = max(damping / 10.0, 1e-9)
         if gain < config.tolerance:
             break
-    return prior.unflat(theta)
+    return theta

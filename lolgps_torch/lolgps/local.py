@@ -201,10 +201,10 @@ Report = Callable[[IdentifiedRecord], None]
 
 
 def identified_record(
-    condition: int, params: ArmParameters, errors: tuple[float, float, int]
+    condition: int, params: ArmParameters, errors: tuple[float, float, float, int]
 ) -> IdentifiedRecord:
     """The record of the arm ``params`` identified for ``condition``, with the one-step errors
-    (identified, URDF, transitions) of :meth:`PegTask.one_step_errors`."""
+    (identified, URDF, plant, transitions) of :meth:`PegTask.one_step_errors`."""
     return IdentifiedRecord(
         condition=condition,
         payload=float(params.payload),
@@ -213,7 +213,8 @@ def identified_record(
         mass_scale=params.mass_scale.tolist(),
         error_identified=errors[0],
         error_urdf=errors[1],
-        transitions=errors[2],
+        error_plant=errors[2],
+        transitions=errors[3],
     )
 
 

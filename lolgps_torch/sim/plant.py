@@ -21,6 +21,8 @@ does with it, so the learner never reads them. With the defaults the plant is th
 from __future__ import annotations
 
 import math
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Literal
 
@@ -109,3 +111,23 @@ class PlantConfig:
 
 
 NOMINAL_PLANT = PlantConfig()  # the arm exactly as its URDF describes it
+
+_INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+
+
+def reshaped_urdf(text: str, factors: Mapping[str, float], added: Mapping[str, float]) -> str:
+    """The URDF ``text`` with link ``name``'s mass and inertia tensor times ``factors[name]``
+    and ``added[name]`` kg more mass at its centre of mass (links not named: unchanged)."""
+    root = ET.fromstring(text)
+    for link in root.iter("link"):
+        name, inertial = link.get("name", ""), link.find("inertial")
+        if inertial is None or (name not in factors and name not in added):
+            continue
+        f = factors.get(name, 1.0)
+        mass, inertia = inertial.find("mass"), inertial.find("inertia")
+        if mass is not None:
+            mass.set("value", repr(f * float(mass.get("value", "0")) + added.get(name, 0.0)))
+        if inertia is not None:
+            for key in _INERTIA_KEYS:
+                inertia.set(key, repr(f * float(inertia.get(key, "0"))))
+    return ET.tostring(root, encoding="unicode")

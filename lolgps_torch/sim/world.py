@@ -28,7 +28,7 @@ from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.spec import ArmSpec
-from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
+from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig, reshaped_urdf
 from lolgps_torch.sim.pybullet_quiet import pb, silenced
 from lolgps_torch.sim.simulator import World, WorldConfig, damping_inertias, hole_boxes
 
@@ -165,6 +165,17 @@ class PegWorld(World):
                 localInertiaDiagonal=[v * f for v in inertia],
                 physicsClientId=c,
             )
+
+    def plant_urdf(self) -> str:
+        """The URDF of the arm as simulated: each link's mass and inertia times its plant
+        factor, the peg link's mass raised by the payload (:meth:`_reshape`)."""
+        c = self.client
+        names = [
+            pb.getJointInfo(self.body, i, physicsClientId=c)[12].decode()
+            for i in range(pb.getNumJoints(self.body, physicsClientId=c))
+        ]
+        factors = dict(zip(names, self.plant.link_factors(len(names)).tolist(), strict=True))
+        return reshaped_urdf(self.arm.urdf_text, factors, {self.arm.peg_link: self.plant.payload})
 
     def _build_hole(self) -> int:
         """The hole's boxes (:func:`hole_boxes`) as one static body."""
