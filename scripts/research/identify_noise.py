@@ -1,15 +1,16 @@
 """What sensor noise does to the arm's identification, on the stream's own first rollouts.
 
     python scripts/research/identify_noise.py [--urdf URDF] [--payload KG]
-        [--obs-noise 0 0.001] [--noise-rounds 0 1] [--iterations 3] [--seed S]
+        [--obs-noise 0 0.001] [--noise-rounds 0 1] [--residual torque speed] [--iterations 3]
+        [--seed S]
 
 For each sensor noise (rad; the joint velocities get 10 times as much) the arm carries
 ``--payload`` kg that its URDF lacks, compensated by the URDF's gravity alone
 (``--gravity-compensation model``). A condition's learner (the nominal hole) samples
 ``--iterations`` batches of its first controller, planned on the arm's model, as the stream's
 first condition does; their free-space transitions identify the arm
-(:func:`lolgps_torch.dynamics.identify.identify`) once per ``--noise-rounds`` value
-(``IdentifyConfig.noise_rounds``). Each line gives the identified payload and gravity-
+(:func:`lolgps_torch.dynamics.identify.identify`) once per ``--residual`` and
+``--noise-rounds`` value (``IdentifyConfig.residual``, ``IdentifyConfig.noise_rounds``). Each line gives the identified payload and gravity-
 compensation gain κ (truth: the payload and 1) and the one-step joint-speed error (rad/s) of
 the identified model, of the URDF's and of the simulated arm's own
 (:meth:`lolgps_torch.task.PegTask.plant_model`) on a second condition's first rollouts (a hole
@@ -40,6 +41,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--payload", type=float, default=1.0, help="kg")
     parser.add_argument("--obs-noise", type=float, nargs="+", default=[0.0, 0.001])
     parser.add_argument("--noise-rounds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--residual", nargs="+", default=["torque", "speed"])
     parser.add_argument("--iterations", type=int, default=3, help="batches to identify from")
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args()
@@ -63,14 +65,17 @@ def main() -> None:
                 task, (0.04, 0.0), replace(config, identify=False), args.seed + 1
             )
             unseen = held_out.sample(held_out.p_cur)
-            for rounds in args.noise_rounds:
-                found = task.identify_model(IdentifyConfig(noise_rounds=rounds))
-                assert found is not None
-                identified, urdf, own, _ = task.one_step_errors(unseen)
-                print(
-                    f"| {noise:g} | {rounds} | {float(found.payload):.3f} | "
-                    f"{float(found.compensation):.3f} | {identified:.4f} / {urdf:.4f} / {own:.4f} |"
-                )
+            for residual in args.residual:
+                for rounds in args.noise_rounds:
+                    setting = IdentifyConfig(noise_rounds=rounds, residual=residual)
+                    found = task.identify_model(setting)
+                    assert found is not None
+                    identified, urdf, own, _ = task.one_step_errors(unseen)
+                    print(
+                        f"| {noise:g} | {residual} | {rounds} | {float(found.payload):.3f} | "
+                        f"{float(found.compensation):.3f} | "
+                        f"{identified:.4f} / {urdf:.4f} / {own:.4f} |"
+                    )
         finally:
             task.close()
 
