@@ -72,10 +72,10 @@ class IdentifyConfig:
         dynamics), whose regressors hold no measured acceleration.
     :param speed_noise: the speed residual's σ (rad/s), and the least any joint's is taken to
         be.
-    :param noise_rounds: times the MAP estimate is solved again with each joint's σ_τ,j the
-        root-mean-square of its residuals at the last solution (floored at ``torque_noise``),
-        so that noisy observations weigh no more against the prior than their scatter says
-        (0: σ_τ for every joint throughout).
+    :param noise_rounds: times the MAP estimate is solved again with each joint's σ_j the
+        root-mean-square of its residuals at the last solution (floored at the residual's σ,
+        :attr:`noise_floor`), so that noisy observations weigh no more against the prior than
+        their scatter says (0: that σ for every joint throughout).
     :param scale_sd: prior standard deviation of each body's scale s_k.
     :param payload_sd: prior standard deviation of the payload's mass (kg).
     :param payload_com_sd: prior standard deviation of the payload's position (m).
@@ -101,6 +101,11 @@ class IdentifyConfig:
     friction_speed: float = 0.01
     iterations: int = 30
     tolerance: float = 1e-9
+
+    @property
+    def noise_floor(self) -> float:
+        """The residual's σ: ``speed_noise`` (rad/s) or ``torque_noise`` (N m)."""
+        return self.speed_noise if self.residual == "speed" else self.torque_noise
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -234,7 +239,8 @@ class TorqueBalance(NamedTuple):
     def residual(
         self, params: ArmParameters, data: Transitions, config: IdentifyConfig, noise: Tensor
     ) -> Tensor:
-        """``r / σ_τ: [B, n]`` (module docstring), with each joint's ``noise`` σ_τ ``[n]``."""
+        """``r / σ: [B, n]``, the torque or the speed residual as ``config.residual`` says
+        (module docstring), with each joint's σ ``noise [n]``."""
         dyn = identified_dynamics(self.dynamics, params)
         qm, qdm = (data.q0 + data.q1) / 2, (data.qd0 + data.qd1) / 2
         frames = dyn.frames(qm)
@@ -259,18 +265,17 @@ def objective(
     noise: Tensor | None = None,
 ) -> Tensor:
     """The stacked whitened residuals R(θ) (torques, then the prior's), ``|R|^2`` the MAP
-    objective, with each joint's σ_τ ``noise [n]`` (default: ``config.torque_noise``)."""
+    objective, with each joint's σ ``noise [n]`` (default: ``config.noise_floor``)."""
     params = prior.unflat(theta)
     if noise is None:
-        floor = config.speed_noise if config.residual == "speed" else config.torque_noise
-        noise = torch.full_like(params.mass_scale, floor)
+        noise = torch.full_like(params.mass_scale, config.noise_floor)
     torques = balance.residual(params, data, config, noise).reshape(-1)
     return torch.cat([torques, (theta - prior.flat()) / prior.prior_sd(config)])
 
 
 def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) -> ArmParameters:
     """The MAP θ by Levenberg-Marquardt from the prior's centre (module docstring), solved
-    again ``config.noise_rounds`` times with each joint's σ_τ from its residuals."""
+    again ``config.noise_rounds`` times with each joint's σ from its residuals."""
     if data.q0.shape[0] == 0:
         raise LolgpsError("identification needs at least one transition")
     prior = ArmParameters.urdf(balance.dynamics)
@@ -278,12 +283,11 @@ def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) 
     def solved(theta: Tensor, noise: Tensor) -> Tensor:
         return _solve(lambda t: objective(balance, prior, data, config, t, noise), theta, config)
 
-    floor = config.speed_noise if config.residual == "speed" else config.torque_noise
-    noise = torch.full_like(prior.mass_scale, floor)
+    noise = torch.full_like(prior.mass_scale, config.noise_floor)
     theta = solved(prior.flat(), noise)
     for _ in range(config.noise_rounds):
         whitened = balance.residual(prior.unflat(theta), data, config, noise)
-        scatter = (whitened * noise).square().mean(0).sqrt().clamp_min(floor)
+        scatter = (whitened * noise).square().mean(0).sqrt().clamp_min(config.noise_floor)
         if torch.equal(scatter, noise):
             break
         noise = scatter
