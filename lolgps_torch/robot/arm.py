@@ -45,7 +45,7 @@ from lolgps_torch.robot.peg import (
     carried_peg_radius,
 )
 from lolgps_torch.robot.rigid_body import ArmDynamics
-from lolgps_torch.robot.spec import DEFAULT_VELOCITY, ArmSpec
+from lolgps_torch.robot.spec import DEFAULT_VELOCITY, INERTIA_KEYS, ArmSpec
 from lolgps_torch.robot.validate import (
     ArmWarning,
     check_actuated_limit,
@@ -62,7 +62,6 @@ _HELD = ("revolute", "continuous", "prismatic")  # the moving joints a position 
 _PREFIXED = re.compile(r"(?:<|</|\s)([A-Za-z_][\w.-]*):[A-Za-z_][\w.-]*(?=[\s=/>])")
 # mesh file extensions PyBullet reads (any case)
 _MESH_FORMATS = (".stl", ".obj", ".dae", ".cdf", ".vtk")
-_INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 # words published descriptions use in the joint names of grippers and hands
 _GRIPPER_WORDS = ("finger", "grip", "jaw", "knuckle", "claw", "thumb")
 # words in the link names of sensors mounted on a wrist, which are no tool frame
@@ -559,7 +558,7 @@ def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg
         if link.find("inertial") is None:
             inertial = ET.SubElement(link, "inertial")
             ET.SubElement(inertial, "mass", value="0")
-            ET.SubElement(inertial, "inertia", {key: "0" for key in _INERTIA_KEYS})
+            ET.SubElement(inertial, "inertia", {key: "0" for key in INERTIA_KEYS})
     return ET.tostring(tree, encoding="unicode")
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")  # a URDF <inertia>'s attributes
 DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
 
 

@@ -29,6 +29,7 @@ from typing import Literal
 import numpy as np
 
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.robot.spec import INERTIA_KEYS
 
 GravityCompensation = Literal["plant", "model", "none"]
 
@@ -112,8 +113,6 @@ class PlantConfig:
 
 NOMINAL_PLANT = PlantConfig()  # the arm exactly as its URDF describes it
 
-_INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
-
 
 def reshaped_urdf(text: str, factors: Mapping[str, float], added: Mapping[str, float]) -> str:
     """The URDF ``text`` with link ``name``'s mass and inertia tensor times ``factors[name]``
@@ -128,6 +127,6 @@ def reshaped_urdf(text: str, factors: Mapping[str, float], added: Mapping[str, f
         if mass is not None:
             mass.set("value", repr(f * float(mass.get("value", "0")) + added.get(name, 0.0)))
         if inertia is not None:
-            for key in _INERTIA_KEYS:
+            for key in INERTIA_KEYS:
                 inertia.set(key, repr(f * float(inertia.get(key, "0"))))
     return ET.tostring(root, encoding="unicode")
