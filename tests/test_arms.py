@@ -33,6 +33,7 @@ from lolgps_torch.robot.placement import (
     place_task,
     vertical_peg_targets,
 )
+from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
@@ -632,23 +633,37 @@ def test_a_published_small_arm_is_placed_from_the_sampled_spots_too() -> None:
         place_task(arm, kin, config, WorldConfig().depth, spots="all")  # type: ignore[arg-type]
 
 
-def test_a_body_too_large_for_pybullets_link_states_is_one_error_line(tmp_path: Path) -> None:
-    """PyBullet keeps link states for bodies of up to about 128 links (example-robot-data's
-    two-armed TIAGo has 131): the KUKA with 130 fixed links added on its base is refused by
-    one line naming what to change, not a traceback; with 100 added it builds."""
+def test_a_body_too_large_for_pybullets_link_states_merges_links_off_the_arm(
+    tmp_path: Path,
+) -> None:
+    """PyBullet keeps link states for bodies of up to 128 links (example-robot-data's
+    two-armed TIAGo has 131): the KUKA with 130 fixed links added off its chain (on its base
+    and its last link, offset and turned) loads with one warning, its extra links merged into
+    their parents, and builds; its mass matrix is PyBullet's for the whole unmerged body (an
+    independent answer: its own parser, every link kept), to rounding."""
     robots = Path("robots").resolve()
     text = (robots / "kuka_peg.urdf").read_text().replace('filename="', f'filename="{robots}/')
-
-    def with_links(n: int) -> str:
-        extra = "".join(
-            f'<link name="extra{i}"><inertial><mass value="0.01"/><inertia ixx="1e-5" '
-            f'iyy="1e-5" izz="1e-5" ixy="0" ixz="0" iyz="0"/></inertial></link>'
-            f'<joint name="extra{i}_joint" type="fixed"><parent link="iiwa_link_0"/>'
-            f'<child link="extra{i}"/></joint>'
-            for i in range(n)
-        )
-        return _write(tmp_path, f"extra{n}.urdf", text.replace("</robot>", extra + "</robot>"))
-
-    PegWorld(load_arm(with_links(100)), WorldConfig(), (0.6, 0.0, 0.2)).close()
-    with pytest.raises(LolgpsError, match=r"getLinkState failed\): remove links the arm does"):
-        PegWorld(load_arm(with_links(130)), WorldConfig(), (0.6, 0.0, 0.2))
+    extra = "\n".join(
+        f'<link name="extra{i}"><inertial><origin xyz="0.01 {0.001 * i} 0" rpy="0.3 0 0.2"/>'
+        f'<mass value="{0.01 + 0.001 * i}"/><inertia ixx="1e-5" iyy="2e-5" izz="1.5e-5" '
+        f'ixy="1e-6" ixz="0" iyz="0"/></inertial></link>'
+        f'<joint name="extra{i}_joint" type="fixed"><parent link="'
+        f'{"iiwa_link_0" if i % 2 else "iiwa_link_7"}"/><child link="extra{i}"/>'
+        f'<origin xyz="0.05 0.02 {0.01 * (i % 7)}" rpy="0.1 {0.01 * i} 0.5"/></joint>'
+        for i in range(130)
+    )
+    path = _write(tmp_path, "extra130.urdf", text.replace("</robot>", extra + "</robot>"))
+    with pytest.warns(ArmWarning, match="merged into their parents"):
+        arm = load_arm(path)
+    PegWorld(arm, WorldConfig(), (0.6, 0.0, 0.2)).close()
+    assert arm.urdf_text.count("<link ") <= 128
+    client = pb.connect(pb.DIRECT)
+    try:
+        body = pb.loadURDF(path, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE,
+                           physicsClientId=client)  # fmt: skip
+        q = [0.3, -0.5, 0.7, 1.1, -0.4, 0.9, 0.2]
+        expected = np.asarray(pb.calculateMassMatrix(body, q, physicsClientId=client))
+    finally:
+        pb.disconnect(client)
+    found = ArmDynamics(arm, inertia="pybullet").mass_matrix(torch.tensor(q, dtype=torch.float64))
+    np.testing.assert_allclose(found.numpy(), expected, rtol=1e-9, atol=1e-12)

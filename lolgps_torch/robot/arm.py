@@ -57,7 +57,8 @@ if TYPE_CHECKING:
     import yourdfpy
 
 _ACTUATED = ("revolute", "continuous")
-_HELD = ("revolute", "continuous", "prismatic")  # the moving joints a position can be held at
+_HELD = ("revolute", "continuous", "prismatic")
+PYBULLET_LINKS = 128  # PyBullet keeps the link states of a body of at most so many links  # the moving joints a position can be held at
 # a prefix of an element's or attribute's name, as in <drake:member> or drake:acceleration="..."
 _PREFIXED = re.compile(r"(?:<|</|\s)([A-Za-z_][\w.-]*):[A-Za-z_][\w.-]*(?=[\s=/>])")
 # mesh file extensions PyBullet reads (any case)
@@ -115,6 +116,8 @@ def load_arm(
                 f"{path}: link name {ATTACHED_PEG!r} is reserved for the attached peg"
             )
         point_link, peg_link, peg_radius = ATTACHED_PEG_TIP, ATTACHED_PEG, peg.radius
+    kept = {root, ee_link, point_link, peg_link, *(n for j in chain for n in (j.parent, j.child))}
+    _merge_fixed_leaves(tree, kept, PYBULLET_LINKS - (0 if carries_peg else 2), path)
     text = _portable_text(tree, path, package_path, peg_link)
     axis = ""
     if not carries_peg:
@@ -498,6 +501,124 @@ def _fold_lock_position(joint: ET.Element, kind: str, q: float) -> None:
         rotation = rotation @ _axis_angle_matrix(axis, q)
     origin.set("xyz", " ".join(repr(float(v)) for v in xyz))
     origin.set("rpy", " ".join(repr(v) for v in _matrix_rpy(rotation)))
+
+
+def _merge_fixed_leaves(tree: ET.Element, kept: set[str], most: int, path: str) -> None:
+    """Where the description has more than ``most`` links, merge links held by fixed joints
+    and bearing no other link into their parents, leaves first, until it has no more (or no
+    such link is left), sparing the ``kept`` links: each merged link's mass joins its
+    parent's at the combined centre of mass, with the inertia about it (parallel axes), and
+    its visuals and collisions move to the parent. The arm's dynamics are the same; PyBullet
+    keeps the link states of a body of at most :data:`PYBULLET_LINKS` links."""
+    links = {link.get("name", ""): link for link in tree.findall("link")}
+    if len(links) <= most:
+        return
+    merged = 0
+    while len(links) > most:
+        joints = tree.findall("joint")
+        parents = {_joint_end(j, "parent") for j in joints}
+        leaves = [
+            j
+            for j in joints
+            if j.get("type") == "fixed"
+            and _joint_end(j, "child") not in kept
+            and _joint_end(j, "child") not in parents
+        ]
+        if not leaves:
+            break
+        for joint in reversed(leaves[: len(links) - most]):
+            child = links.pop(_joint_end(joint, "child"))
+            _merge_link(links[_joint_end(joint, "parent")], child, _transform(joint))
+            tree.remove(joint)
+            tree.remove(child)
+            merged += 1
+    warnings.warn(
+        f"{path}: {merged} fixed links off the arm merged into their parents (PyBullet keeps "
+        f"the states of at most {PYBULLET_LINKS} links)",
+        ArmWarning,
+        stacklevel=3,
+    )
+
+
+def _joint_end(joint: ET.Element, end: str) -> str:
+    element = joint.find(end)
+    return "" if element is None else element.get("link", "")
+
+
+def _transform(element: ET.Element) -> np.ndarray:
+    """The 4x4 transform of ``element``'s ``<origin>`` (identity without one)."""
+    origin = element.find("origin")
+    T = np.eye(4)
+    if origin is not None:
+        T[:3, :3] = _rpy_matrix(*(float(v) for v in origin.get("rpy", "0 0 0").split()))
+        T[:3, 3] = [float(v) for v in origin.get("xyz", "0 0 0").split()]
+    return T
+
+
+def _set_origin(element: ET.Element, T: np.ndarray) -> None:
+    origin = element.find("origin")
+    if origin is None:
+        origin = ET.Element("origin")
+        element.insert(0, origin)
+    origin.set("xyz", " ".join(repr(float(v)) for v in T[:3, 3]))
+    origin.set("rpy", " ".join(repr(v) for v in _matrix_rpy(T[:3, :3])))
+
+
+def _mass_properties(link: ET.Element, T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mass, centre of mass and inertia about it of ``link``, in the frame ``T`` maps its own
+    frame into."""
+    inertial = link.find("inertial")
+    if inertial is None:
+        return 0.0, np.zeros(3), np.zeros((3, 3))
+    mass_el, inertia_el = inertial.find("mass"), inertial.find("inertia")
+    mass = float(mass_el.get("value", "0")) if mass_el is not None else 0.0
+    values = {
+        k: float(inertia_el.get(k, "0")) if inertia_el is not None else 0.0 for k in INERTIA_KEYS
+    }
+    inertia = np.array(
+        [
+            [values["ixx"], values["ixy"], values["ixz"]],
+            [values["ixy"], values["iyy"], values["iyz"]],
+            [values["ixz"], values["iyz"], values["izz"]],
+        ]
+    )
+    frame = T @ _transform(inertial)
+    R = frame[:3, :3]
+    return mass, frame[:3, 3], R @ inertia @ R.T
+
+
+def _merge_link(parent: ET.Element, child: ET.Element, joint: np.ndarray) -> None:
+    """``child``, fixed to ``parent`` by a joint at ``joint`` (4x4), merged into ``parent``."""
+    m1, c1, I1 = _mass_properties(parent, np.eye(4))
+    m2, c2, I2 = _mass_properties(child, joint)
+    if m2 > 0.0 or child.find("inertial") is not None:
+        mass = m1 + m2
+        com = (m1 * c1 + m2 * c2) / mass if mass > 0.0 else c1
+        inertia = np.zeros((3, 3))
+        for m, c, own in ((m1, c1, I1), (m2, c2, I2)):
+            d = c - com
+            inertia += own + m * (d @ d * np.eye(3) - np.outer(d, d))
+        old = parent.find("inertial")
+        if old is not None:
+            parent.remove(old)
+        inertial = ET.SubElement(parent, "inertial")
+        ET.SubElement(inertial, "origin", xyz=" ".join(repr(float(v)) for v in com), rpy="0 0 0")
+        ET.SubElement(inertial, "mass", value=repr(float(mass)))
+        index = {
+            "ixx": (0, 0),
+            "ixy": (0, 1),
+            "ixz": (0, 2),
+            "iyy": (1, 1),
+            "iyz": (1, 2),
+            "izz": (2, 2),
+        }
+        ET.SubElement(
+            inertial, "inertia", {k: repr(float(inertia[index[k]])) for k in INERTIA_KEYS}
+        )
+    for kind in ("visual", "collision"):
+        for shape in child.findall(kind):
+            _set_origin(shape, joint @ _transform(shape))
+            parent.append(shape)
 
 
 def _rpy_matrix(r: float, p: float, y: float) -> np.ndarray:
