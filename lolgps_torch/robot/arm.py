@@ -45,7 +45,13 @@ from lolgps_torch.robot.peg import (
     carried_peg_radius,
 )
 from lolgps_torch.robot.rigid_body import ArmDynamics
-from lolgps_torch.robot.spec import DEFAULT_VELOCITY, INERTIA_KEYS, ArmSpec
+from lolgps_torch.robot.spec import (
+    DEFAULT_VELOCITY,
+    INERTIA_ENTRIES,
+    INERTIA_KEYS,
+    ArmSpec,
+    add_inertial,
+)
 from lolgps_torch.robot.validate import (
     ArmWarning,
     check_actuated_limit,
@@ -572,16 +578,10 @@ def _mass_properties(link: ET.Element, T: np.ndarray) -> tuple[float, np.ndarray
         return 0.0, np.zeros(3), np.zeros((3, 3))
     mass_el, inertia_el = inertial.find("mass"), inertial.find("inertia")
     mass = float(mass_el.get("value", "0")) if mass_el is not None else 0.0
-    values = {
-        k: float(inertia_el.get(k, "0")) if inertia_el is not None else 0.0 for k in INERTIA_KEYS
-    }
-    inertia = np.array(
-        [
-            [values["ixx"], values["ixy"], values["ixz"]],
-            [values["ixy"], values["iyy"], values["iyz"]],
-            [values["ixz"], values["iyz"], values["izz"]],
-        ]
-    )
+    inertia = np.zeros((3, 3))
+    if inertia_el is not None:
+        for key, (i, j) in INERTIA_ENTRIES.items():
+            inertia[i, j] = inertia[j, i] = float(inertia_el.get(key, "0"))
     frame = T @ _transform(inertial)
     R = frame[:3, :3]
     return mass, frame[:3, 3], R @ inertia @ R.T
@@ -601,20 +601,7 @@ def _merge_link(parent: ET.Element, child: ET.Element, joint: np.ndarray) -> Non
         old = parent.find("inertial")
         if old is not None:
             parent.remove(old)
-        inertial = ET.SubElement(parent, "inertial")
-        ET.SubElement(inertial, "origin", xyz=" ".join(repr(float(v)) for v in com), rpy="0 0 0")
-        ET.SubElement(inertial, "mass", value=repr(float(mass)))
-        index = {
-            "ixx": (0, 0),
-            "ixy": (0, 1),
-            "ixz": (0, 2),
-            "iyy": (1, 1),
-            "iyz": (1, 2),
-            "izz": (2, 2),
-        }
-        ET.SubElement(
-            inertial, "inertia", {k: repr(float(inertia[index[k]])) for k in INERTIA_KEYS}
-        )
+        add_inertial(parent, com, mass, inertia)
     for kind in ("visual", "collision"):
         for shape in child.findall(kind):
             _set_origin(shape, joint @ _transform(shape))

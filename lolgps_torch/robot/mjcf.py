@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.spec import DEFAULT_VELOCITY
+from lolgps_torch.robot.spec import DEFAULT_VELOCITY, add_inertial
 
 ROOT_LINK = "world"
 
@@ -136,22 +136,9 @@ def mjcf_urdf(path: str) -> str:
         R = _matrix(m.body_quat[b])
         origin = m.body_pos[b] + R @ anchor[b] - anchor[parent]
         link = ET.SubElement(robot, "link", name=name)
-        inertial = ET.SubElement(link, "inertial")
-        ET.SubElement(inertial, "origin", xyz=_xyz(m.body_ipos[b] - anchor[b]), rpy="0 0 0")
-        ET.SubElement(inertial, "mass", value=repr(float(m.body_mass[b])))
         Ri = _matrix(m.body_iquat[b])
         inertia = Ri @ np.diag(m.body_inertia[b]) @ Ri.T
-        keys = {
-            "ixx": (0, 0),
-            "ixy": (0, 1),
-            "ixz": (0, 2),
-            "iyy": (1, 1),
-            "iyz": (1, 2),
-            "izz": (2, 2),
-        }
-        ET.SubElement(
-            inertial, "inertia", {k: repr(float(inertia[i, j])) for k, (i, j) in keys.items()}
-        )
+        add_inertial(link, m.body_ipos[b] - anchor[b], float(m.body_mass[b]), inertia)
         joint_name = (
             _name(m, mujoco.mjtObj.mjOBJ_JOINT, joint, f"joint{joint}")
             if joint >= 0

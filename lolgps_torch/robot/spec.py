@@ -5,10 +5,32 @@ nothing of the package, so that the loader can build on the modules that read it
 
 from __future__ import annotations
 
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
-INERTIA_KEYS = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")  # a URDF <inertia>'s attributes
+import numpy as np
+
+# a URDF <inertia>'s attributes, as entries of the tensor
+INERTIA_ENTRIES = {
+    "ixx": (0, 0),
+    "ixy": (0, 1),
+    "ixz": (0, 2),
+    "iyy": (1, 1),
+    "iyz": (1, 2),
+    "izz": (2, 2),
+}
+INERTIA_KEYS = tuple(INERTIA_ENTRIES)
 DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
+
+
+def add_inertial(link: ET.Element, com: np.ndarray, mass: float, inertia: np.ndarray) -> None:
+    """Append to the URDF ``link`` an ``<inertial>``: ``mass`` (kg) at ``com`` (m, in the
+    link's frame) with the ``inertia`` tensor about it (``3 x 3``, the link's axes)."""
+    inertial = ET.SubElement(link, "inertial")
+    ET.SubElement(inertial, "origin", xyz=" ".join(repr(float(c)) for c in com), rpy="0 0 0")
+    ET.SubElement(inertial, "mass", value=repr(float(mass)))
+    entries = {k: repr(float(inertia[i, j])) for k, (i, j) in INERTIA_ENTRIES.items()}
+    ET.SubElement(inertial, "inertia", entries)
 
 
 @dataclass(frozen=True)
