@@ -21,8 +21,10 @@ the peg and point frames keep their names.  Everything else is made to match PyB
   rotor-like inertia is added where joint damping would be unstable, so that the arm's model
   (:class:`~lolgps_torch.sim.model.ControlStep`) is the same for both engines.
 
-What stays different: MuJoCo's contacts are soft (the peg may sink a fraction of a
-millimetre into a plate) and its joint limits are soft constraints; a link whose inertia breaks the triangle inequality is balanced by MuJoCo's
+What stays different: contact.  MuJoCo's contacts are soft, here with a time constant of
+:data:`CONTACT_TIME_CONSTANT` physics steps, and a physics step with the peg touching is
+taken as :data:`CONTACT_REFINE` finer ones (:func:`_physics_steps`); the peg may sink up to
+about 2 mm into a plate.  Its joint limits are soft constraints; a link whose inertia breaks the triangle inequality is balanced by MuJoCo's
 compiler where PyBullet zeroes it.  Only the nominal plant is simulated
 (:func:`~lolgps_torch.sim.simulator.check_plant`).
 """
@@ -51,6 +53,11 @@ from lolgps_torch.sim.simulator import (
 PYBULLET_LINK_FRICTION = 0.5  # a URDF link's lateral friction in PyBullet unless it sets one
 LINK_DAMPING = 0.04  # btMultiBody's linear and angular link damping (sim/model.py)
 HOLE = "lolgps_hole"
+# Contacts (docs/RESULTS.md, MuJoCo): the peg touching the table or the hole makes a physics
+# step this many finer ones, and contacts take this many physics steps as their time constant
+# (MuJoCo's default, 0.02 s, is its floor of two)
+CONTACT_REFINE = 2
+CONTACT_TIME_CONSTANT = 4
 
 
 def mujoco_urdf(arm: ArmSpec) -> tuple[str, float]:
@@ -146,6 +153,7 @@ class MujocoWorld(World):
     ) -> None:
         check_plant("mujoco", plant)
         super().__init__(arm, config, nominal_mouth, plant)
+        self.physics_step = config.dt / config.substeps
         self.model = self._compile()
         m = self.model
         self.data = mujoco.MjData(m)
@@ -174,11 +182,13 @@ class MujocoWorld(World):
         friction = [cfg.friction * peg_friction, 0.005, 0.0001]  # sliding; MuJoCo's others
         try:
             spec = mujoco.MjSpec.from_string(text)
-            spec.option.timestep = cfg.dt / cfg.substeps
+            spec.option.timestep = self.physics_step
             spec.option.gravity = [0.0, 0.0, -cfg.gravity]
             spec.option.enableflags |= int(mujoco.mjtEnableBit.mjENBL_MULTICCD)
+            soft = [CONTACT_TIME_CONSTANT * self.physics_step, 1.0]  # time constant, damping ratio
             for geom in spec.geoms:
                 geom.friction = friction
+                geom.solref = soft
             hole = spec.worldbody.add_body(name=HOLE, mocap=True)
             for box in hole_boxes(self.arm.peg_radius, cfg):
                 yaw = box.yaw or 0.0
@@ -190,6 +200,7 @@ class MujocoWorld(World):
                     pos=turn @ np.asarray(box.centre),
                     quat=_quaternion(yaw, box.tilt),
                     friction=friction,
+                    solref=soft,
                 )
             return spec.compile()
         except ValueError as error:
@@ -296,12 +307,39 @@ class MujocoWorld(World):
 
 
 def _physics_steps(worlds: Sequence[MujocoWorld], tau: np.ndarray) -> None:
-    """One physics step of each of ``worlds`` (of one arm and configuration) with its row of
-    joint torques ``tau: [n, dof]``: MuJoCo's step in two halves, between them the URDF's
-    joint damping and Bullet's link damping (:func:`link_damping`, all worlds at once) at the
-    velocities the step starts from, as PyBullet applies them."""
+    """One physics step ``h = dt / substeps`` of each of ``worlds`` (of one arm and
+    configuration) with its row of joint torques ``tau: [n, dof]``, in MuJoCo's two halves
+    (:func:`_second_half`).
+
+    A world whose peg touches the table or the hole as the step starts takes it as
+    :data:`CONTACT_REFINE` steps of ``h / CONTACT_REFINE`` with the same torques. At ``h``
+    and MuJoCo's stiffest contacts (time constant 2 h), the peg's rim held on a plate's edge
+    at the mouth let an exploring controller's feedback grow until the joints passed 70 rad/s
+    or the simulation blew up, where PyBullet's arm stays below 9 rad/s; with the contacts'
+    time constant at 4 h and the step halved in contact, none of 1 000 first-controller
+    rollouts did (``scripts/research/first_controller.py``, docs/RESULTS.md). Free space
+    keeps ``h``, the step the arm's model integrates at.  Whether a world refines depends on its own state
+    only, so each world's numbers stay its own whatever worlds share the batch."""
     for world in worlds:
-        mujoco.mj_step1(world.model, world.data)  # positions and velocities
+        mujoco.mj_step1(world.model, world.data)  # positions, velocities, contacts
+    touching = [i for i, world in enumerate(worlds) if world.data.ncon > 0]
+    fine = [worlds[i] for i in touching]
+    for world in fine:
+        world.model.opt.timestep = world.physics_step / CONTACT_REFINE
+    _second_half(worlds, tau)
+    for _ in range(CONTACT_REFINE - 1 if fine else 0):
+        for world in fine:
+            mujoco.mj_step1(world.model, world.data)
+        _second_half(fine, tau[touching])
+    for world in fine:
+        world.model.opt.timestep = world.physics_step
+
+
+def _second_half(worlds: Sequence[MujocoWorld], tau: np.ndarray) -> None:
+    """The second half of a physics step after ``mj_step1``: the URDF's joint damping and
+    Bullet's link damping (:func:`link_damping`, all worlds at once) at the velocities the step
+    starts from, as PyBullet applies them, with the torques ``tau: [n, dof]``, then
+    ``mj_step2``."""
     first = worlds[0]
     wrench = link_damping(
         np.array([world._cvel for world in worlds]),
