@@ -108,10 +108,20 @@ class ControlStep:
         (:meth:`_advance`); the point columns are the identity (``p' = p + ...``), the
         point-velocity columns zero, and the action history's rows a shift.
         """
-        lay, n = self.layout, self.layout.n_joints
+        lay = self.layout
         commands = self._commands(x, u)
         q, qd, moved, J = self._advance(x[:, lay.q], x[:, lay.qd], commands, jacobian=True)
         assert J is not None
+        return self.assemble(x, u, q, qd, moved, J)
+
+    def assemble(
+        self, x: Tensor, u: Tensor, q: Tensor, qd: Tensor, moved: Tensor, J: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`linearize`'s ``(F, f0)`` from the joints' step at ``x: [B, dX]``,
+        ``u: [B, dU]``: the next ``q, qd: [B, n]``, the points' move ``P(q') - P(q): [B, 6]``
+        and the derivative ``J: [B, 2n + 6, (3 + h) n]`` of ``(q', qd', P(q') - P(q))`` with
+        respect to ``(q, qd, u_t, u_{t-1}, ..., u_{t-h})``, however they were obtained."""
+        lay, n = self.layout, self.layout.n_joints
         B, dX = x.shape[0], lay.dX
         F = x.new_zeros(B, dX, dX + n)
         # q, qd, u and past-action columns, in the order of _advance's inputs
