@@ -8,7 +8,9 @@ exploration noise: how often the joints get fast, the simulation blows up, or th
 Per simulator and condition, ``batches`` batches of the run's samples per iteration, batch b
 drawing its noise from seed 1000 + b: the batches that blew up (a :class:`NumericalError`),
 the rollouts whose fastest joint passed 20 rad/s, the fastest joint of all (rad/s) and the
-success rate of the batches that did not blow up.
+success rate of the batches that did not blow up.  ``--contact-refine K`` and
+``--contact-time-constant S`` try other contact settings of the MuJoCo world (its
+``CONTACT_REFINE`` and ``CONTACT_TIME_CONSTANT``).
 """
 
 from __future__ import annotations
@@ -38,7 +40,16 @@ def main() -> None:
     parser.add_argument("--conditions", type=int, nargs="+", default=[4, 5])
     parser.add_argument("--batches", type=int, default=20, help="batches per condition")
     parser.add_argument("--sims", nargs="+", choices=get_args(Simulator), default=["pybullet", "mujoco"])  # fmt: skip
+    parser.add_argument("--contact-refine", type=int, help="MuJoCo: finer steps in contact")
+    parser.add_argument("--contact-time-constant", type=float, help="MuJoCo: in physics steps")
     args = parser.parse_args()
+    if args.contact_refine is not None or args.contact_time_constant is not None:
+        import lolgps_torch.sim.mujoco_world as mujoco_world
+
+        if args.contact_refine is not None:
+            mujoco_world.CONTACT_REFINE = args.contact_refine
+        if args.contact_time_constant is not None:
+            mujoco_world.CONTACT_TIME_CONSTANT = args.contact_time_constant
     if args.batches < 1:
         raise LolgpsError("--batches must be at least 1")
     loaded = load_run(args.run)
