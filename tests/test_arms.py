@@ -347,6 +347,20 @@ def test_thin_link_with_a_zero_principal_moment_loads_and_simulates(tmp_path: Pa
         task.close()
 
 
+def test_an_inertia_negative_only_by_rounding_loads(tmp_path: Path) -> None:
+    """iCub's published head: all zero but ``ixz = 2.4e-35`` (principal moments +-2.4e-35),
+    which is zero; a matrix negative beyond rounding is still refused."""
+    text = Path("robots/kuka_peg.urdf").read_text()
+    link7 = text.index('<link name="iiwa_link_7">')
+    start = text.index("<inertia ", link7)
+    end = text.index("/>", start) + 2
+    zero = '<inertia ixx="0" ixy="0" ixz="2.40741e-35" iyy="0" iyz="0" izz="0"/>'
+    load_arm(_write(tmp_path, "rounding.urdf", text[:start] + zero + text[end:]))
+    negative = zero.replace("2.40741e-35", "1e-6")
+    with pytest.raises(LolgpsError, match="not positive semi-definite"):
+        load_arm(_write(tmp_path, "negative.urdf", text[:start] + negative + text[end:]))
+
+
 def test_fixed_joint_limits_are_ignored(tmp_path: Path) -> None:
     """Published fixed mounting joints carry placeholder limits such as effort 0."""
     path = _kuka_variant(

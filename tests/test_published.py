@@ -172,6 +172,18 @@ def test_unnamed_visual_materials_are_named(tmp_path: Path) -> None:
             load_arm(str(_toy(tmp_path, body, f"bad{i}.urdf")))
 
 
+def test_a_texture_without_a_file_is_accepted_and_dropped(tmp_path: Path) -> None:
+    """iCub's published visuals hold ``<texture />``, which ROS's parser accepts."""
+    visual = (
+        '<visual><geometry><box size="0.05 0.05 0.05"/></geometry>'
+        '<material name="m"><color rgba="1 0 0 1"/><texture /></material></visual>'
+    )
+    arm, _ = _load_quietly(_toy(tmp_path, _chain(("j1", "j2", "j3"), visual)))
+    assert "texture" not in arm.urdf_text and 'rgba="1 0 0 1"' in arm.urdf_text
+    world = PegWorld(arm, WorldConfig(T=2), (0.3, 0.0, 0.0))
+    world.close()
+
+
 def test_meshes_pybullet_cannot_read_are_dropped_with_one_warning(tmp_path: Path) -> None:
     """A .glb visual would make PyBullet refuse the whole URDF."""
     (tmp_path / "part.glb").write_bytes(b"glTF")

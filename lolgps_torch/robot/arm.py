@@ -649,8 +649,9 @@ def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg
     defaults written out where the two readers differ: axis (1, 0, 0) on moving joints that
     omit it (pytorch-kinematics would take (0, 0, 1)), and zero mass and inertia on links
     without ``<inertial>`` (PyBullet would give them 1 kg and 1 kg m^2).  Other tools'
-    namespaced extensions (``drake:...``) are dropped, elements and attributes alike, and
-    materials of visuals published with an empty name are named (``lolgps_material_N``)."""
+    namespaced extensions (``drake:...``) are dropped, elements and attributes alike,
+    materials of visuals published with an empty name are named (``lolgps_material_N``), and
+    textures without a filename (which name nothing) dropped."""
     for child in list(tree):
         if child.tag in ("transmission", "gazebo"):
             tree.remove(child)
@@ -658,6 +659,10 @@ def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg
     for i, material in enumerate(tree.findall("link/visual/material")):
         if not material.get("name"):
             material.set("name", f"lolgps_material_{i}")
+    for material in tree.iter("material"):
+        for texture in material.findall("texture"):
+            if not texture.get("filename"):
+                material.remove(texture)
     _drop_unused_shapes(tree, path, package_path, peg_link)
     for joint in tree.findall("joint"):
         if joint.get("type") != "fixed" and joint.find("axis") is None:

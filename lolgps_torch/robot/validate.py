@@ -15,7 +15,9 @@ What is checked, each failure a :class:`LolgpsError` naming the file and the ele
   and their limits mean nothing here (published descriptions put placeholders there);
 * inertia: any ``<inertial>`` holds exactly one ``<mass>`` (finite, ``>= 0``) and one
   ``<inertia>`` with six finite entries forming a positive semi-definite matrix (a principal
-  moment of 0 is a thin rod's, and physical).  A link without ``<inertial>`` is massless (the
+  moment of 0 is a thin rod's, and physical; a negative one within rounding, 1e-9 of the
+  largest diagonal entry plus :data:`INERTIA_ROUNDING`, is taken as 0: iCub's published
+  head has ``ixz = 2.4e-35`` and nothing else).  A link without ``<inertial>`` is massless (the
   URDF default), as is one of mass 0, moving or not: once the arm is assembled (joints locked,
   peg attached) :func:`check_moved_mass` refuses only an actuated joint that moves no mass at
   all, and warns about the massless links that actuated joints drive.  Principal moments that break the triangle
@@ -53,6 +55,7 @@ _JOINT_PARTS = {
 _LARGEST = 1e6
 _BOUNDED = ("origin", "axis", "mass", "inertia", "box", "cylinder", "capsule", "sphere", "mesh")
 _INERTIA = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+INERTIA_ROUNDING = 1e-12  # kg m^2: far below any physical part (a 1 g bead of 1 mm: 4e-10)
 # each primitive shape's size attributes and how many numbers each holds
 _SHAPES = {
     "box": (("size", 3),),
@@ -238,16 +241,15 @@ def _check_joint(joint: ET.Element, where: str) -> None:
 def _check_material(material: ET.Element, where: str, top_level: bool) -> None:
     """A name (pytorch-kinematics' parser needs one; as in ROS's parser a visual's material
     may name itself ``""``, as xacro output does, and the loader replaces that), and an rgba
-    colour of four numbers."""
+    colour of four numbers.  A ``<texture>`` without a filename is accepted, as ROS's parser
+    accepts it (the loader drops it)."""
     name = material.get("name")
     if name is None or (top_level and not name):
         raise LolgpsError(f"{where}: <material> has no name")
     color = _optional_child(material, "color", where)
     if color is not None:
         _required_numbers(color, "rgba", where, 4)
-    texture = _optional_child(material, "texture", where)
-    if texture is not None and not texture.get("filename"):
-        raise LolgpsError(f"{where}: <texture> has no filename")
+    _optional_child(material, "texture", where)
 
 
 def _welded_to(
@@ -283,14 +285,15 @@ def _check_inertial(
     scale = max(abs(xx), abs(yy), abs(zz))
     if mass < 0:
         raise LolgpsError(f"{where}: mass must not be negative, got {mass}")
-    if moments[0] < -1e-9 * scale and static:
+    rounding = 1e-9 * scale + INERTIA_ROUNDING
+    if moments[0] < -rounding and static:
         return [f"{name!r} (on the fixed base) inertia is not positive semi-definite"]
-    if moments[0] < -1e-9 * scale:
+    if moments[0] < -rounding:
         raise LolgpsError(
             f"{where}: inertia is not positive semi-definite (principal moments "
             f"{', '.join(f'{m:.3g}' for m in moments)}); correct ixx..izz"
         )
-    if moments[0] + moments[1] < moments[2] * (1 - 1e-6):
+    if moments[0] + moments[1] < moments[2] * (1 - 1e-6) - INERTIA_ROUNDING:
         return [
             f"{name!r} principal moments break I1 + I2 >= I3 by {moments[2] - moments[0] - moments[1]:.2g}"
         ]
