@@ -641,6 +641,18 @@ def _axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
 
 
+def _name_materials(tree: ET.Element) -> None:
+    """Name the materials of visuals published with an empty name (``lolgps_material_N``),
+    and drop textures without a filename (which name nothing)."""
+    for i, material in enumerate(tree.findall("link/visual/material")):
+        if not material.get("name"):
+            material.set("name", f"lolgps_material_{i}")
+    for material in tree.iter("material"):
+        for texture in material.findall("texture"):
+            if not texture.get("filename"):
+                material.remove(texture)
+
+
 def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg_link: str) -> str:
     """The URDF as text both PyBullet and pytorch-kinematics accept from any folder, and read
     alike: mesh paths resolved to absolute ones (:mod:`.packages`), collision shapes of arm
@@ -656,13 +668,7 @@ def _portable_text(tree: ET.Element, path: str, package_path: Sequence[str], peg
         if child.tag in ("transmission", "gazebo"):
             tree.remove(child)
     _drop_namespaced(tree)
-    for i, material in enumerate(tree.findall("link/visual/material")):
-        if not material.get("name"):
-            material.set("name", f"lolgps_material_{i}")
-    for material in tree.iter("material"):
-        for texture in material.findall("texture"):
-            if not texture.get("filename"):
-                material.remove(texture)
+    _name_materials(tree)
     _drop_unused_shapes(tree, path, package_path, peg_link)
     for joint in tree.findall("joint"):
         if joint.get("type") != "fixed" and joint.find("axis") is None:
