@@ -105,7 +105,8 @@ def fit_guard(
 
 def tip_distance(x: Tensor, layout: StateLayout) -> Tensor:
     """``d = |p_tip - p*_tip|`` of states ``x: [..., dX]`` -> ``[...]``."""
-    return x[..., layout.points][..., :3].norm(dim=-1)
+    tip = layout.points.start
+    return torch.linalg.vector_norm(x[..., tip : tip + 3], dim=-1)
 
 
 Stopping = Callable[[Tensor], Tensor]  # states [n, dX] -> M(q) q-dot / dt, [n, dU]

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Any, Literal, get_args
+from typing import Any, Literal, NamedTuple, get_args
 
 import torch
 from torch import Tensor
@@ -129,22 +129,71 @@ def _mlp(
 Product = Callable[[Tensor, Tensor], Tensor]  # (x, W) -> x W^T
 
 
-def _forward(layers: list[torch.nn.Module], h: Tensor, product: Product | None) -> Tensor:
-    """``layers`` applied in turn, linear layers and ReLUs as functions of their weights: the
-    same arithmetic as calling them, without the module call's bookkeeping, which took 60 % of
-    a one-row evaluation (every control step of a policy rollout). ``product`` replaces a linear
-    layer's ``h W^T`` (None: torch's)."""
-    for layer in layers:
-        if isinstance(layer, torch.nn.Linear):
-            if product is None:
-                h = functional.linear(h, layer.weight, layer.bias)
-            else:
-                h = product(h, layer.weight) + layer.bias
-        elif isinstance(layer, torch.nn.ReLU):
+class Layer(NamedTuple):
+    """A linear layer's weight ``W [out, in]`` and bias ``b [out]``: ``h -> h W^T + b``."""
+
+    weight: Tensor
+    bias: Tensor
+
+    def __call__(self, h: Tensor, product: Product | None) -> Tensor:
+        """``h W^T + b`` (``product(h, W)`` in place of ``h W^T``; None: torch's)."""
+        if product is None:
+            return functional.linear(h, self.weight, self.bias)
+        return product(h, self.weight) + self.bias
+
+
+Step = Layer | torch.nn.Module  # a linear layer's weights, or a module without weights
+
+
+def _apply(steps: tuple[Step, ...], h: Tensor, product: Product | None) -> Tensor:
+    """``steps`` applied to ``h`` in turn; a ReLU as ``h.relu()``, another module called."""
+    for step in steps:
+        if isinstance(step, Layer):
+            h = step(h, product)
+        elif isinstance(step, torch.nn.ReLU):
             h = h.relu()
         else:
-            h = layer(h)
+            h = step(h)
     return h
+
+
+class Net(NamedTuple):
+    """The policy's net with its linear layers as plain tensors, the modules' own (autograd
+    and in-place updates of the weights reach them): the MLP's ``layers`` in order, and the
+    gain head ``gain`` (None: the plain MLP). Taken out of the modules once, it evaluates
+    without the module calls and attribute look-ups, which took most of a one-row evaluation
+    (every control step of a policy rollout)."""
+
+    layers: tuple[Step, ...]
+    gain: Layer | None
+
+    def __call__(self, z: Tensor, product: Product | None = None) -> Tensor:
+        """The net's output at whitened states ``z: [..., dX]``, before the output scaling:
+        ``a(h) + B(h) z`` with the gain head, else ``a(h)``, where ``h`` is the output of all
+        layers but the last, ``a`` the last layer and ``B(h)`` the gain head's output as
+        ``[..., dU, dX]``; ``product(h, W)`` in place of each ``h W^T`` (None: torch's)."""
+        if self.gain is None:
+            return _apply(self.layers, z, product)
+        h = _apply(self.layers[:-1], z, product)
+        gain = self.gain(h, product)
+        out = _apply(self.layers[-1:], h, product)
+        return out + (gain.unflatten(-1, (out.shape[-1], z.shape[-1])) * z.unsqueeze(-2)).sum(-1)
+
+
+class Acting(NamedTuple):
+    """``mu_theta`` as plain tensors (:meth:`GaussianPolicy.acting`): the whitening, the
+    :class:`Net` and the output scaling."""
+
+    x_mean: Tensor
+    x_std: Tensor
+    net: Net
+    u_mean: Tensor
+    u_scale: Tensor
+
+    def __call__(self, x: Tensor, product: Product | None = None) -> Tensor:
+        """Action mean ``mu_theta(x)``: ``[..., dX] -> [..., dU]``."""
+        z = (x - self.x_mean) / self.x_std
+        return torch.addcmul(self.u_mean, self.net(z, product), self.u_scale)
 
 
 class GaussianPolicy(torch.nn.Module):
@@ -207,18 +256,25 @@ class GaussianPolicy(torch.nn.Module):
         """Action mean ``mu_theta(x)``: ``[..., dX] -> [..., dU]``; ``product(x, W)`` in place
         of each matrix product ``x W^T`` (None: torch's; a row-wise one for rows stepped
         together, :func:`lolgps_torch.sim.rollout.matmul_rows`)."""
-        z = (x - self.x_mean) / self.x_std
-        return torch.addcmul(self.u_mean, self.unscaled(z, product), self.u_scale)
+        return self.acting()(x, product)
 
     def unscaled(self, z: Tensor, product: Product | None = None) -> Tensor:
         """The net's output at whitened states ``z``, before the output scaling."""
-        layers = list(self.net)
-        if not self.config.feedback:
-            return _forward(layers, z, product)
-        h = _forward(layers[:-1], z, product)
-        gain = _forward([self.gain], h, product)
-        out = _forward(layers[-1:], h, product)
-        return out + (gain.unflatten(-1, (self.dU, self.dX)) * z.unsqueeze(-2)).sum(-1)
+        return self.layers()(z, product)
+
+    def layers(self) -> Net:
+        """The net's weights as plain tensors (:class:`Net`), valid while no weight tensor is
+        replaced (in-place updates are seen)."""
+        layers = tuple(
+            Layer(m.weight, m.bias) if isinstance(m, torch.nn.Linear) else m for m in self.net
+        )
+        gain = Layer(self.gain.weight, self.gain.bias) if self.config.feedback else None
+        return Net(layers, gain)
+
+    def acting(self) -> Acting:
+        """``mu_theta`` as plain tensors (:class:`Acting`), valid while no weight or buffer
+        tensor is replaced."""
+        return Acting(self.x_mean, self.x_std, self.layers(), self.u_mean, self.u_scale)
 
     @property
     def guard(self) -> Guard:

@@ -285,6 +285,7 @@ def distill(
     trainee = copy.deepcopy(policy).to(dtype)
     weights: list[Tensor] = [w for w in trainee.parameters() if w.requires_grad]
     moments = AdamMoments.zeros(weights)
+    net = trainee.layers()
     with intra_op_threads(config.num_threads):
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)  # checks P
@@ -292,7 +293,7 @@ def distill(
             constant = constant + rows.constant
         for step, index in enumerate(draws):
             z, target, prec = rows.unpack(index, policy.dX, policy.dU)
-            loss = 0.5 * _quadratic(trainee.unscaled(z) - target, prec).mean()
+            loss = 0.5 * _quadratic(net(z) - target, prec).mean()
             grads = list(torch.autograd.grad(loss, weights))
             adam_step(weights, grads, moments, cosine_rate(config, step))
             history.append(loss.detach())

@@ -323,7 +323,7 @@ class World(ABC):
         """The book-keeping of a control step issuing ``u`` (:meth:`step`), and the joint
         torques of its physics steps, ``[substeps, dof]``."""
         substeps = self.config.substeps
-        if not np.all(np.isfinite(u)):
+        if not np.isfinite(u).all():
             raise NumericalError("non-finite action: the controller produced NaN or inf torques")
         g = self.gravity_compensation()
         if self.config.compensate_gravity:  # the learner's own, sent with the command
@@ -339,10 +339,11 @@ class World(ABC):
         if self.delay_fraction > 0:  # row j + 1 is k physics steps late at step j, row j k + 1
             f = self.delay_fraction
             held = (1.0 - f) * held[1:] + f * held[:-1]
-        # the commands as they act (within the effort limits): past commands beyond them
-        # would grow without bound under a controller that feeds them back
-        acting = np.clip(u + g_total, -self.effort, self.effort) - g_total
-        self._issued = np.concatenate([acting[None], self._issued])[: len(self._issued)]
+        if len(self._issued):  # the state keeps the last commands
+            # the commands as they act (within the effort limits): past commands beyond them
+            # would grow without bound under a controller that feeds them back
+            acting = np.clip(u + g_total, -self.effort, self.effort) - g_total
+            self._issued = np.concatenate([acting[None], self._issued])[: len(self._issued)]
         self._prev_points = self._points
         return np.clip(held[:substeps] + g, -self.effort, self.effort)
 
