@@ -172,6 +172,21 @@ def test_unnamed_visual_materials_are_named(tmp_path: Path) -> None:
             load_arm(str(_toy(tmp_path, body, f"bad{i}.urdf")))
 
 
+def test_a_hands_driving_joint_ends_the_arm_whatever_its_name(tmp_path: Path) -> None:
+    """As Romeo's hand: a joint named ``LHand`` drives one finger, and three sibling joints
+    mimic it; the arm ends at the wrist link they hang from, not at that finger."""
+    body = _chain(("j1", "j2", "j3"))
+    for name in ("f1", "f2", "f3", "f4"):
+        body += LINK.format(n=name, extra="")
+    body += JOINT.format(n="LHand", t="revolute", p="l3", c="f1", xyz="0.05 0 0", axis="0 1 0")
+    for i, name in enumerate(("f2", "f3", "f4"), 2):
+        body += JOINT.format(
+            n=f"follower{i}", t="revolute", p="l3", c=name, xyz="0.05 0 0", axis="0 1 0"
+        ).replace("</joint>", '<mimic joint="LHand"/></joint>')
+    arm, _ = _load_quietly(_toy(tmp_path, body))
+    assert arm.ee_link == "l3" and arm.dof == 3
+
+
 def test_a_texture_without_a_file_is_accepted_and_dropped(tmp_path: Path) -> None:
     """iCub's published visuals hold ``<texture />``, which ROS's parser accepts."""
     visual = (

@@ -340,12 +340,25 @@ def _is_gripper(j: yourdfpy.Joint) -> bool:
     return any(word in j.name.lower() for word in _GRIPPER_WORDS)
 
 
+def _hand_drivers(children: dict[str, list[yourdfpy.Joint]]) -> set[str]:
+    """The joints that a sibling joint (one of the same parent link) mimics: a hand's driving
+    joint, whose fingers follow it (Romeo's ``LHand``, beside ``LFinger21``, ``LFinger31`` and
+    ``LThumb1``), whatever its name."""
+    return {
+        j.mimic.joint
+        for siblings in children.values()
+        for j in siblings
+        if j.mimic is not None and any(k.name == j.mimic.joint for k in siblings)
+    }
+
+
 def _detect_ee_link(robot: yourdfpy.URDF, root: str, path: str, grippers: bool = True) -> str:
     """The end of the arm: follow the actuated joints down from the root and stop at the link
     below which the tree splits into branches no deeper than the path so far (a hand or
     gripper) or has no actuated joint left; then take the deepest link fixed to it (a flange,
     tool or TCP frame; among equally deep ones, one with no child link), skipping gripper
-    parts and wrist cameras.  Gripper joints (:func:`_is_gripper`), mimic and prismatic joints never count,
+    parts and wrist cameras.  Gripper joints (:func:`_is_gripper`, and a hand's driving joint,
+    :func:`_hand_drivers`), mimic and prismatic joints never count,
     unless ``grippers`` is False: that is the second try when the first passes no actuated
     joint (a robot finger's joints are all named ``finger_...``).  Two equally deep arms are
     an error naming where each ends.
@@ -353,9 +366,10 @@ def _detect_ee_link(robot: yourdfpy.URDF, root: str, path: str, grippers: bool =
     children: dict[str, list[yourdfpy.Joint]] = {}
     for j in robot.robot.joints:
         children.setdefault(j.parent, []).append(j)
+    hands = _hand_drivers(children)
 
     def skipped(j: yourdfpy.Joint) -> bool:
-        return grippers and _is_gripper(j)
+        return grippers and (_is_gripper(j) or j.name in hands)
 
     @functools.cache
     def depth(link: str) -> int:  # most actuated joints on a path below link
