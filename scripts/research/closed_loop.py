@@ -2,17 +2,19 @@
 model?  Its noiseless rollout in the run's simulator, and along it the closed-loop matrix of
 each step on the model linearised there, ``A_t = F_x,t + F_u,t K_t``.
 
-    python scripts/research/closed_loop.py --run RUN [--conditions 0 2 6]
+    python scripts/research/closed_loop.py --run RUN [--conditions 0 2 6] [--model-plans K]
 
 Per condition: the rollout's final distance and fastest joint, the largest spectral radius of
 ``A_t`` and the steps where it passes 1.05 (a perturbation grows by that factor per control
 step there; the point features' integrators hold the radius at 1 otherwise).
+``--model-plans K`` plans with K C-steps on the model instead of the run's number.
 """
 
 from __future__ import annotations
 
 import argparse
 import warnings
+from dataclasses import replace
 
 import torch
 
@@ -32,17 +34,23 @@ def main() -> None:
     )
     parser.add_argument("--run", required=True, help="a run folder")
     parser.add_argument("--conditions", type=int, nargs="+", default=[0])
+    parser.add_argument("--model-plans", type=int, help="C-steps on the model (default: the run's)")
     args = parser.parse_args()
     info = load_run(args.run).info
     bad = [c for c in args.conditions if not 0 <= c < len(info.conditions)]
     if bad:
         raise LolgpsError(f"conditions {bad} not in the run's {len(info.conditions)}")
     warnings.simplefilter("ignore", UserWarning)  # the planning's KL warnings, as in the stream
+    local = info.stream.local
+    if args.model_plans is not None:
+        if args.model_plans < 0:
+            raise LolgpsError("--model-plans must be >= 0")
+        local = replace(local, model_plans=args.model_plans)
     task = PegTask(info.task, n_worlds=1)
     lay = task.layout
     try:
         for c in args.conditions:
-            learner = LocalLearner(task, info.conditions[c], info.stream.local, seed=0)
+            learner = LocalLearner(task, info.conditions[c], local, seed=0)
             p = learner.p_cur
             quiet = torch.zeros(1, task.T, lay.dU, dtype=torch.float64, device=task.device)
             samples = task.sample(linear_gaussian_actor(p, quiet), [learner.offset])
