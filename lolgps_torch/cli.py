@@ -13,7 +13,7 @@ import sys
 import types
 import typing
 import warnings
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -29,6 +29,18 @@ from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.task import TaskConfig, measure_delay, measure_gravity
 
 Position = tuple[float, float]
+
+
+def run_parser(doc: str | None, conditions: Sequence[int]) -> argparse.ArgumentParser:
+    """A parser for a script about a finished run: ``--run RUN`` (its folder) and
+    ``--conditions C ...`` (indices of its conditions, ``conditions`` by default), with
+    ``doc`` as its description."""
+    parser = argparse.ArgumentParser(
+        description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--run", required=True, help="a run folder")
+    parser.add_argument("--conditions", type=int, nargs="+", default=list(conditions))
+    return parser
 
 
 def _field_hint(owner: object, name: str) -> Any:

@@ -4,6 +4,7 @@ policies the research tools and the evaluation load."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,12 @@ class RunInfo:
     method: str
     seed: int
     stream: StreamConfig
+
+    def check_conditions(self, indices: Sequence[int]) -> None:
+        """A :class:`LolgpsError` unless every index names one of the run's conditions."""
+        bad = [c for c in indices if not 0 <= c < len(self.conditions)]
+        if bad:
+            raise LolgpsError(f"conditions {bad} not in the run's {len(self.conditions)}")
 
 
 def stream_config(folder: RunFolder, config: dict[str, Any]) -> StreamConfig:

@@ -12,13 +12,12 @@ step there; the point features' integrators hold the radius at 1 otherwise).
 
 from __future__ import annotations
 
-import argparse
 import warnings
 from dataclasses import replace
 
 import torch
 
-from lolgps_torch.cli import run
+from lolgps_torch.cli import run, run_parser
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalLearner
 from lolgps_torch.lolgps.run import load_run
@@ -29,17 +28,11 @@ GROWING = 1.05  # spectral radius above which a step counts as amplifying
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--run", required=True, help="a run folder")
-    parser.add_argument("--conditions", type=int, nargs="+", default=[0])
+    parser = run_parser(__doc__, [0])
     parser.add_argument("--model-plans", type=int, help="C-steps on the model (default: the run's)")
     args = parser.parse_args()
     info = load_run(args.run).info
-    bad = [c for c in args.conditions if not 0 <= c < len(info.conditions)]
-    if bad:
-        raise LolgpsError(f"conditions {bad} not in the run's {len(info.conditions)}")
+    info.check_conditions(args.conditions)
     warnings.simplefilter("ignore", UserWarning)  # the planning's KL warnings, as in the stream
     local = info.stream.local
     if args.model_plans is not None:

@@ -26,7 +26,6 @@ the world's own ``step``.  Only the default state (no action history) is support
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import warnings
 from dataclasses import replace
@@ -36,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from lolgps_torch.cli import run
+from lolgps_torch.cli import run, run_parser
 from lolgps_torch.dynamics import DynamicsFitter
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalLearner
@@ -102,11 +101,7 @@ def errors(F: Tensor, f: Tensor, test: Trajectories, qd: slice) -> Tensor:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--run", required=True, help="a run folder")
-    parser.add_argument("--conditions", type=int, nargs="+", default=[0, 4])
+    parser = run_parser(__doc__, [0, 4])
     parser.add_argument("--samples", type=int, default=5, help="rollouts to fit and to test")
     args = parser.parse_args()
     info = load_run(args.run).info
@@ -114,9 +109,7 @@ def main() -> None:
         raise LolgpsError("only runs without an action history in the state are supported")
     if args.samples < 2:
         raise LolgpsError("--samples must be at least 2")
-    bad = [c for c in args.conditions if not 0 <= c < len(info.conditions)]
-    if bad:
-        raise LolgpsError(f"conditions {bad} not in the run's {len(info.conditions)}")
+    info.check_conditions(args.conditions)
     warnings.simplefilter("ignore", UserWarning)  # the planning's KL warnings, as in the stream
     config = replace(info.task, sim="mujoco")
     task = PegTask(config, n_worlds=1)

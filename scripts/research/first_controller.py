@@ -15,14 +15,13 @@ success rate of the batches that did not blow up.  ``--contact-refine K`` and
 
 from __future__ import annotations
 
-import argparse
 import warnings
 from dataclasses import replace
 from typing import get_args
 
 import torch
 
-from lolgps_torch.cli import run
+from lolgps_torch.cli import run, run_parser
 from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.lolgps.local import LocalLearner
 from lolgps_torch.lolgps.run import load_run
@@ -33,11 +32,7 @@ FAST = 20.0  # rad/s: a joint speed the first controllers' successful rollouts s
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--run", required=True, help="a run folder")
-    parser.add_argument("--conditions", type=int, nargs="+", default=[4, 5])
+    parser = run_parser(__doc__, [4, 5])
     parser.add_argument("--batches", type=int, default=20, help="batches per condition")
     parser.add_argument("--sims", nargs="+", choices=get_args(Simulator), default=["pybullet", "mujoco"])  # fmt: skip
     parser.add_argument("--contact-refine", type=int, help="MuJoCo: finer steps in contact")
@@ -54,9 +49,7 @@ def main() -> None:
         raise LolgpsError("--batches must be at least 1")
     loaded = load_run(args.run)
     info = loaded.info
-    bad = [c for c in args.conditions if not 0 <= c < len(info.conditions)]
-    if bad:
-        raise LolgpsError(f"conditions {bad} not in the run's {len(info.conditions)}")
+    info.check_conditions(args.conditions)
     warnings.simplefilter("ignore", UserWarning)  # the planning's KL warnings, as in the stream
     for sim in args.sims:
         task = PegTask(replace(info.task, sim=sim), n_worlds=1)
