@@ -23,8 +23,9 @@ the peg and point frames keep their names.  Everything else is made to match PyB
 
 What stays different: contact.  MuJoCo's contacts are soft, here with a time constant of
 :data:`CONTACT_TIME_CONSTANT` physics steps, and a physics step with the peg touching is
-taken as :data:`CONTACT_REFINE` finer ones (:func:`_physics_steps`); the peg may sink up to
-about 2 mm into a plate.  Its joint limits are soft constraints; a link whose inertia breaks the triangle inequality is balanced by MuJoCo's
+taken as :data:`CONTACT_REFINE` finer ones (:func:`_physics_steps`); the peg sinks 2–3 mm
+into a plate under the controllers' pushes, and up to 11 mm into the table when pushed down by
+30 N before it rests.  Its joint limits are soft constraints; a link whose inertia breaks the triangle inequality is balanced by MuJoCo's
 compiler where PyBullet zeroes it.  Only the nominal plant is simulated
 (:func:`~lolgps_torch.sim.simulator.check_plant`).
 """
@@ -315,11 +316,12 @@ def _physics_steps(worlds: Sequence[MujocoWorld], tau: np.ndarray) -> None:
     :data:`CONTACT_REFINE` steps of ``h / CONTACT_REFINE`` with the same torques. At ``h``
     and MuJoCo's stiffest contacts (time constant 2 h), the peg's rim held on a plate's edge
     at the mouth let an exploring controller's feedback grow until the joints passed 70 rad/s
-    or the simulation blew up, where PyBullet's arm stays below 9 rad/s; with the contacts'
-    time constant at 4 h and the step halved in contact, none of 1 000 first-controller
-    rollouts did (``scripts/research/first_controller.py``, docs/RESULTS.md). Free space
-    keeps ``h``, the step the arm's model integrates at.  Whether a world refines depends on its own state
-    only, so each world's numbers stay its own whatever worlds share the batch."""
+    or the simulation blew up (6 of 160 batches of the KUKA's seed-2 first controllers), where
+    PyBullet's arm stays below 9 rad/s; with the contacts' time constant at 4 h and the step
+    halved in contact, none of them did (``scripts/research/first_controller.py``,
+    docs/RESULTS.md). Free space keeps ``h``, the step the arm's model integrates at.  Whether
+    a world refines depends on its own state only, so each world's numbers stay its own
+    whatever worlds share the batch."""
     for world in worlds:
         mujoco.mj_step1(world.model, world.data)  # positions, velocities, contacts
     touching = [i for i, world in enumerate(worlds) if world.data.ncon > 0]
