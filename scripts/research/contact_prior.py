@@ -18,6 +18,9 @@ per phase: "free" where the peg's tip is more than 1 cm above the mouth, "hole" 
 - ``fit``: the dynamics fit of the stream (GMM and the free-space model as the prior);
 - ``fit on differences``: the same fit with the differences as the prior's model.
 
+It first checks that the differenced step is MuJoCo's own: stepped from each test state's
+joint angles, speeds and action, the world gives the recorded next joint speeds.
+
 MuJoCo's own ``mjd_transitionFD`` differentiates a physics step with respect to actuator
 controls; this world's torques and Bullet-like damping enter as applied forces set between
 the halves of each step, so the whole control step is differenced here instead, through
@@ -139,6 +142,18 @@ def main() -> None:
             for p in predictions:
                 F, f = (p.F, p.f) if isinstance(p, LinearDynamics) else p
                 scored.append(errors(F[: task.T - 1], f[: task.T - 1], test, lay.qd))
+            exact = max(
+                float(
+                    abs(
+                        differences.step(np.concatenate([x[lay.q], x[lay.qd], a]))[lay.qd]
+                        - after[lay.qd]
+                    ).max()
+                )
+                for xs, us in zip(test.x.numpy(), test.u.numpy(), strict=True)
+                for x, a, after in zip(xs[:-1], us[:-1], xs[1:], strict=True)
+            )
+            print(f"{c:>9}  MuJoCo's step from each test state's q, qd and u: its next joint "
+                  f"speeds to {exact:.1e} rad/s", flush=True)  # fmt: skip
             free = test.x[:, 1:, lay.points][..., 2] > depth + ABOVE
             for phase, mask in (("free", free), ("hole", ~free)):
                 if not bool(mask.any()):
