@@ -355,7 +355,9 @@ class PegTask:
             return None
         urdf = ControlStep(self.arm, self.config.world, device=self.device).urdf
         effort = torch.tensor(self.arm.effort, dtype=torch.float64, device=self.device)
-        balance = TorqueBalance(urdf, effort, self.config.world.dt, LINK_DAMPING)
+        balance = TorqueBalance(
+            urdf, effort, self.config.world.dt, LINK_DAMPING, self.config.world.substeps
+        )
         params = identify(balance, self._seen[0], config)
         identified = (identified_dynamics(urdf, params), float(params.compensation))
         self._model = ControlStep(self.arm, self.config.world, self.device, identified)

@@ -41,7 +41,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--payload", type=float, default=1.0, help="kg")
     parser.add_argument("--obs-noise", type=float, nargs="+", default=[0.0, 0.001])
     parser.add_argument("--noise-rounds", type=int, nargs="+", default=[0, 1])
-    parser.add_argument("--residual", nargs="+", default=["torque", "speed"])
+    parser.add_argument("--residual", nargs="+", default=["torque", "speed", "step"])
     parser.add_argument("--iterations", type=int, default=3, help="batches to identify from")
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args()
@@ -50,9 +50,9 @@ def parse_args() -> argparse.Namespace:
 def main() -> None:
     args = parse_args()
     print(
-        "| sensor noise (rad) | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) |"
+        "| sensor noise (rad) | residual | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) |"
     )
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|")
     for noise in args.obs_noise:
         plant = PlantConfig(payload=args.payload, gravity_compensation="model", obs_noise=noise)
         task = PegTask(TaskConfig(urdf=args.urdf, plant=plant), n_worlds=5)
