@@ -198,7 +198,7 @@ class StreamLearner:
             self.replay if config.replay else None,
         )
         self.sstep = checked_sstep(task, config, distill)
-        self.starts = PlannedStarts(task, config.local)  # p_cur's plans on the arm's model
+        self.starts = PlannedStarts(task, config.local)  # each first p_cur, planned on the model
 
     def learn_condition(
         self, index: int, offset: tuple[float, float], upcoming: tuple[float, float] | None = None
@@ -216,7 +216,7 @@ class StreamLearner:
         failure, final = outcome.failure, outcome.final
         labels, local = self.teacher(outcome, offset)  # D_g is labelled here
         data = label(self.task, outcome.found.kept, labels)
-        self.starts.request(upcoming)
+        self.starts.request(upcoming)  # planned during the S-step, where a worker is idle
         t0 = time.perf_counter()
         checked = self.sstep(self.policy, Labelled(offset, data, labels), seed)
         losses, after, repairs = checked.losses, checked.distances[-1], checked.rounds
