@@ -51,6 +51,7 @@ from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.simulator import Simulator, World, WorldConfig, check_plant, require
 from lolgps_torch.sim.world import PegWorld
+from lolgps_torch.state import StateLayout
 from lolgps_torch.types import Trajectories
 
 IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses
@@ -226,6 +227,42 @@ def load_task_arm(config: TaskConfig) -> ArmSpec:
     )
 
 
+def peg_cost(config: CostConfig, arm: ArmSpec, kinematics: PegKinematics,
+             layout: StateLayout) -> PegCost:  # fmt: skip
+    """The l12 cost of ``arm``'s task, its torques scaled by the arm's effort limits."""
+    effort = torch.tensor(arm.effort, dtype=torch.float64)
+    return PegCost(config, kinematics, layout, effort)
+
+
+@dataclass(frozen=True)
+class ModelSetup:
+    """What a task's model of the arm is built from, as plain data (it pickles, unlike a task,
+    whose worlds hold simulator clients): the arm, the world's and the cost's settings, the
+    start pose q0 (rad) and the device."""
+
+    arm: ArmSpec
+    world: WorldConfig
+    cost: CostConfig
+    q0: tuple[float, ...]
+    device: str = "cpu"
+
+
+class ArmModel:
+    """The parts of a :class:`PegTask` that need no world, built from a :class:`ModelSetup` as
+    the task builds its own: the state layout, the episode length T, the start pose q0, the
+    kinematics, the cost and the free-space control step of the URDF's arm (``model``)."""
+
+    def __init__(self, setup: ModelSetup) -> None:
+        arm, world = setup.arm, setup.world
+        self.device = torch.device(setup.device)
+        self.layout = world.layout(arm.dof)
+        self.T = world.T
+        self.q0 = torch.tensor(setup.q0, dtype=torch.float64, device=self.device)
+        self.kinematics = PegKinematics(arm, self.device)
+        self.cost = peg_cost(setup.cost, arm, self.kinematics, self.layout)
+        self.model = ControlStep(arm, world, device=self.device)
+
+
 class PegTask:
     """Samples rollouts at hole offsets and scores them with the l12 cost.
 
@@ -273,8 +310,7 @@ class PegTask:
         )
         parallel = workers > 1 and self.device.type == "cpu"
         self.pool = RolloutPool(setup, workers, self.sampler) if parallel else None
-        effort = torch.tensor(self.arm.effort, dtype=torch.float64)
-        self.cost = PegCost(config.cost, self.kinematics, self.layout, effort)
+        self.cost = peg_cost(config.cost, self.arm, self.kinematics, self.layout)
         self._model: ControlStep | None = None
         self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
         self._seen: list[Transitions] = []  # free-space transitions kept for identification
@@ -285,6 +321,11 @@ class PegTask:
         if self._model is None:
             self._model = ControlStep(self.arm, self.config.world, device=self.device)
         return self._model
+
+    def model_setup(self) -> ModelSetup:
+        """What :class:`ArmModel` builds this task's kinematics, cost and URDF model from."""
+        q0 = tuple(float(q) for q in self.geometry.q0)
+        return ModelSetup(self.arm, self.config.world, self.config.cost, q0, str(self.device))
 
     def free_transitions(self, samples: Trajectories) -> tuple[Tensor, Tensor]:
         """The states ``[N, T+1, dX]`` of ``samples`` (the final one appended) and which of

@@ -38,7 +38,7 @@ from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.dynamics.identify import ArmParameters, IdentifyConfig
 from lolgps_torch.errors import NumericalError, check_fields
 from lolgps_torch.sim.rollout import linear_gaussian_actor
-from lolgps_torch.task import PegTask
+from lolgps_torch.task import ArmModel, PegTask
 from lolgps_torch.trajopt import (
     CStepConfig,
     adapt_step_mult,
@@ -151,7 +151,7 @@ def initial_controller(task: PegTask, config: LocalConfig) -> LinearGaussian:
 
 
 def planned_controller(
-    task: PegTask, targets: Tensor, hold: LinearGaussian, config: LocalConfig
+    task: PegTask | ArmModel, targets: Tensor, hold: LinearGaussian, config: LocalConfig
 ) -> tuple[LinearGaussian, float]:
     """The hold controller's mean replanned on the arm's model (:func:`.trajopt.plan_on_model`,
     ``config.model_plans`` C-steps of the largest step size), and the hold's total cost.
@@ -176,6 +176,10 @@ def planned_controller(
         config.dynamics.initial_state_var,
     )  # fmt: skip
     return planned, rest
+
+
+# planned_controller's signature: (task, targets, hold, config) -> (first controller, hold's cost)
+Planner = Callable[[PegTask, Tensor, LinearGaussian, LocalConfig], tuple[LinearGaussian, float]]
 
 
 def mean_and_se2(totals: Tensor) -> tuple[float, float]:
@@ -229,9 +233,12 @@ class LocalLearner:
         seed: int,
         report: Report | None = None,
         condition: int = 0,
+        planner: Planner = planned_controller,
     ) -> None:
         """``report`` receives the arm identified for condition ``condition`` (with
-        ``config.identify``), measured on the condition's first rollouts."""
+        ``config.identify``), measured on the condition's first rollouts; ``planner`` gives
+        :func:`planned_controller`'s result (with the model prior and ``config.model_plans``),
+        computed here or ahead of time (:class:`~lolgps_torch.lolgps.plans.PlannedStarts`)."""
         self.task, self.offset, self.config = task, offset, config
         self.generator = torch.Generator().manual_seed(seed)
         self.targets = task.targets([offset])[0]
@@ -246,9 +253,7 @@ class LocalLearner:
         start = time.perf_counter()
         if model and config.model_plans > 0:
             try:
-                self.p_cur, self.start_cost = planned_controller(
-                    task, self.targets, self.p_cur, config
-                )
+                self.p_cur, self.start_cost = planner(task, self.targets, self.p_cur, config)
             except NumericalError as error:  # the hold is a safe start: learn from it
                 warnings.warn(
                     f"hole {offset}: the first controller could not be planned on the arm's "

@@ -48,6 +48,7 @@ from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate
 from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits
+from lolgps_torch.lolgps.plans import PlannedStarts
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
@@ -197,18 +198,25 @@ class StreamLearner:
             self.replay if config.replay else None,
         )
         self.sstep = checked_sstep(task, config, distill)
+        self.starts = PlannedStarts(task, config.local)  # each first p_cur, planned on the model
 
-    def learn_condition(self, index: int, offset: tuple[float, float]) -> ConditionSummary:
+    def learn_condition(
+        self, index: int, offset: tuple[float, float], upcoming: tuple[float, float] | None = None
+    ) -> ConditionSummary:
         """One condition of Algorithm 2: local learning, D_g and the S-step with replay;
-        returns its summary entry."""
+        returns its summary entry. The first controller at the ``upcoming`` condition's offset
+        is planned during the S-step where a rollout worker is idle (:class:`PlannedStarts`)."""
         cfg, seed = self.config, condition_seed(self.config, index)
-        learner = LocalLearner(self.task, offset, cfg.local, seed, self.log, index)
+        learner = LocalLearner(
+            self.task, offset, cfg.local, seed, self.log, index, self.starts.plan
+        )
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
         phases, probes = self.phases(offset)
         outcome = self.learn_locally(learner, linearize, index, phases, probes)
         failure, final = outcome.failure, outcome.final
         labels, local = self.teacher(outcome, offset)  # D_g is labelled here
         data = label(self.task, outcome.found.kept, labels)
+        self.starts.request(upcoming)  # planned during the S-step, where a worker is idle
         t0 = time.perf_counter()
         checked = self.sstep(self.policy, Labelled(offset, data, labels), seed)
         losses, after, repairs = checked.losses, checked.distances[-1], checked.rounds
@@ -330,7 +338,8 @@ class StreamLearner:
         then test the final policy at every one of them."""
         summary = self._restore()
         for index in range(len(summary), len(conditions)):
-            entry = self.learn_condition(index, conditions[index])
+            upcoming = conditions[index + 1] if index + 1 < len(conditions) else None
+            entry = self.learn_condition(index, conditions[index], upcoming)
             summary.append(entry)
             on_condition(entry)
         return self.finish(summary, conditions)

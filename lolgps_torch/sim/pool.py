@@ -13,6 +13,10 @@ of tensors). The workers start with the pool, so they import and build their wor
 main process prepares its first batch, and they end with :meth:`RolloutPool.close` or with the
 main process. They are spawned with the main script hidden (:func:`main_script_hidden`): they
 import this module and what it needs, not the script's own imports.
+
+Between batches a worker can run an errand (:meth:`RolloutPool.submit`): a picklable callable,
+run where the worker would otherwise wait, whose result the main process collects later; a
+batch sent to that worker meanwhile waits for the errand to finish.
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ import pickle
 import queue
 import sys
 import traceback
-from collections.abc import Iterator, Sequence
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -39,6 +44,7 @@ from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
 from lolgps_torch.sim.simulator import Simulator, WorldConfig
 
 Position = tuple[float, float]
+Errand = Callable[[], Any]  # picklable, its result too
 
 
 @dataclass(frozen=True)
@@ -104,9 +110,9 @@ def _next_job(jobs: multiprocessing.queues.Queue[bytes | None]) -> bytes | None:
 
 def _serve(setup: WorldSetup, jobs: multiprocessing.queues.Queue[bytes | None],
            results: multiprocessing.queues.Queue[bytes]) -> None:  # fmt: skip
-    """A worker: build the world, then run ``(actor, offsets, rows, batch)`` jobs until None,
-    putting
-    the rollouts (or the exception that stopped them) on ``results``."""
+    """A worker: build the world, then run jobs until None, putting each one's result (or the
+    exception that stopped it) on ``results``: an errand is called without arguments, an
+    ``(actor, offsets, rows, batch)`` tuple is rolled out."""
     torch.set_num_threads(1)
     try:
         sampler: Sampler | None = setup.sampler()
@@ -115,10 +121,14 @@ def _serve(setup: WorldSetup, jobs: multiprocessing.queues.Queue[bytes | None],
         sampler, built = None, error
     while (job := _next_job(jobs)) is not None:
         try:
-            if sampler is None:
+            task = pickle.loads(job)
+            if callable(task):
+                result: Any = task()
+            elif sampler is None:
                 raise built if built is not None else RuntimeError("no world")
-            act, offsets, rows, batch = pickle.loads(job)
-            result: Any = rollout_rows(sampler, act, offsets, rows, batch)
+            else:
+                act, offsets, rows, batch = task
+                result = rollout_rows(sampler, act, offsets, rows, batch)
         except Exception as error:
             result = _failure(error)
         results.put(pickle.dumps(result))
@@ -139,6 +149,9 @@ class RolloutPool:
             raise LolgpsError(f"a rollout pool needs at least 2 workers, got {workers}")
         self.workers, self.own = workers, own
         self._procs: list[tuple[Any, Any, Any]] = []  # (process, jobs, results)
+        self._errands: list[deque[int]] = [deque() for _ in range(workers - 1)]  # uncollected
+        self._done: dict[int, Any] = {}  # errand -> its result, received before it was asked
+        self._submitted = 0
         context = multiprocessing.get_context("spawn")
         with main_script_hidden():
             for _ in range(self.workers - 1):
@@ -161,12 +174,44 @@ class RolloutPool:
             own: Any = rollout_rows(self.own, act, offsets, mine, batch)
         except Exception as error:
             own = error
-        parts = [own, *(self._receive(proc, results) for proc, _, results in used)]
+        parts = [own, *(self._receive_rollout(worker) for worker in range(len(used)))]
         failures = [p for p in parts if isinstance(p, BaseException)]
         if failures:
             raise failures[0]
         x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
         return x, u, final
+
+    def submit(self, errand: Errand) -> int:
+        """Send ``errand`` to the last worker (whose block of a batch is the smallest), which
+        runs it after the jobs it already has; returns the ticket :meth:`collect` takes."""
+        ticket, self._submitted = self._submitted, self._submitted + 1
+        worker = len(self._procs) - 1
+        self._procs[worker][1].put(pickle.dumps(errand))
+        self._errands[worker].append(ticket)
+        return ticket
+
+    def collect(self, ticket: int) -> Any:
+        """The result of the errand :meth:`submit` returned ``ticket`` for, waiting for it;
+        the exception that stopped it is raised here."""
+        for worker, owed in enumerate(self._errands):
+            while ticket in owed:
+                self._receive_errand(worker)
+        result = self._done.pop(ticket)
+        if isinstance(result, BaseException):
+            raise result
+        return result
+
+    def _receive_errand(self, worker: int) -> None:
+        """Receive the result of ``worker``'s oldest uncollected errand."""
+        proc, _, results = self._procs[worker]
+        self._done[self._errands[worker].popleft()] = self._receive(proc, results)
+
+    def _receive_rollout(self, worker: int) -> Any:
+        """``worker``'s next rollout result, after the errands it was sent before it."""
+        while self._errands[worker]:
+            self._receive_errand(worker)
+        proc, _, results = self._procs[worker]
+        return self._receive(proc, results)
 
     @staticmethod
     def _receive(proc: multiprocessing.process.BaseProcess, results: Any) -> Any:
@@ -189,4 +234,4 @@ class RolloutPool:
             proc.join(timeout=5.0)
             if proc.is_alive():
                 proc.terminate()
-        self._procs = []
+        self._procs, self._errands, self._done = [], [], {}
