@@ -87,16 +87,18 @@ def test_recovers_a_payload(arm: ArmSpec) -> None:
 
 
 @pytest.mark.parametrize(
-    ("residual", "within"), [("torque", 0.05), ("speed", 0.15), ("step", 0.05)]
+    ("residual", "within", "rollouts"),
+    [("torque", 0.05, 16), ("speed", 0.15, 16), ("step", 0.05, 6)],
 )
-def test_recovers_link_masses(arm: ArmSpec, residual: str, within: float) -> None:
+def test_recovers_link_masses(arm: ArmSpec, residual: str, within: float, rollouts: int) -> None:
     """Link masses scaled by factors in [0.7, 1.3]: the elbow's and the wrist's bodies (links 3
-    to 6, one link each) within 5 % by the torque balance and the step residual, 15 % by the
-    midpoint speed residual (its error of order dt^2 goes into the masses). The base link's mass moves no
+    to 6, one link each) within 5 % by the torque balance and by the step residual (from 6
+    rollouts: its Jacobian costs 5 forward dynamics per parameter), 15 % by the midpoint speed
+    residual (its error of order dt^2 goes into the masses). The base link's mass moves no
     actuated joint and link 2's hardly changes the torques of these rollouts: both stay near
     the prior."""
     data, masses = _rollouts(
-        arm, PlantConfig(inertia_scale=0.3, seed=1, gravity_compensation="model")
+        arm, PlantConfig(inertia_scale=0.3, seed=1, gravity_compensation="model"), rollouts
     )
     balance = _balance(arm, WorldConfig())
     config = IdentifyConfig(residual=residual)  # type: ignore[arg-type]
@@ -136,12 +138,12 @@ def test_the_step_residual_is_the_simulators_control_step(arm: ArmSpec) -> None:
     assert float(speed.abs().max()) > 1e-3
 
 
-def test_the_step_residual_starts_from_the_midpoint_estimate(arm: ArmSpec) -> None:
-    """Solved from the prior, the step residual's Levenberg-Marquardt stalls in a local minimum
-    with a negative payload on the KUKA carrying 1 kg; from the midpoint form's estimate (what
-    :func:`identify` does) it reaches an objective a hundredth of that, the payload within
-    2 %."""
-    data, _ = _rollouts(arm, PlantConfig(payload=1.0, gravity_compensation="model"))
+def test_the_step_residual_starts_from_the_torque_balances_estimate(arm: ArmSpec) -> None:
+    """On the KUKA carrying 1 kg (6 rollouts), the step residual's Levenberg-Marquardt started
+    from the midpoint form's estimate stalls in a local minimum with a negative payload, its
+    objective a thousand times the minimum's; started from the torque balance's estimate (what
+    :func:`identify` does) it finds the payload within 2 %."""
+    data, _ = _rollouts(arm, PlantConfig(payload=1.0, gravity_compensation="model"), rollouts=6)
     balance = _balance(arm, WorldConfig())
     prior = ArmParameters.urdf(balance.dynamics)
     config = IdentifyConfig(noise_rounds=0)
@@ -149,10 +151,11 @@ def test_the_step_residual_starts_from_the_midpoint_estimate(arm: ArmSpec) -> No
     def stacked(theta: torch.Tensor) -> torch.Tensor:
         return objective(balance, prior, data, config, theta)
 
-    stalled = _solve(stacked, prior.flat(), config)
+    midpoint = identify(balance, data, IdentifyConfig(residual="speed", noise_rounds=0))
+    stalled = _solve(stacked, midpoint.flat(), config)
     found = identify(balance, data, config)
     assert float(prior.unflat(stalled).payload) < 0
-    assert float(stacked(found.flat()).square().sum()) < 0.01 * float(
+    assert float(stacked(found.flat()).square().sum()) < 1e-3 * float(
         stacked(stalled).square().sum()
     )
     assert float(found.payload) == pytest.approx(1.0, rel=0.02)

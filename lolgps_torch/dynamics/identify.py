@@ -299,17 +299,19 @@ def objective(
 def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) -> ArmParameters:
     """The MAP θ by Levenberg-Marquardt (module docstring), solved again
     ``config.noise_rounds`` times with each joint's σ from its residuals. The step residual
-    starts from the midpoint form's estimate (solved once, each joint's σ the floor): from the
-    prior its Gauss-Newton steps can stall in a local minimum (on the KUKA carrying 1 kg, a
-    payload of -0.4 kg at 260 times the objective, ``tests/test_identify.py``)."""
+    starts from the torque balance's estimate (solved once, each joint's σ the floor), whose
+    residual is linear in the inertial parameters: from the prior, or from the midpoint form's
+    estimate, its Gauss-Newton steps can stall in a local minimum with a negative payload
+    (``tests/test_identify.py``)."""
     if data.q0.shape[0] == 0:
         raise LolgpsError("identification needs at least one transition")
     prior = ArmParameters.urdf(balance.dynamics)
     noise = torch.full_like(prior.mass_scale, config.noise_floor)
     theta = prior.flat()
     if config.residual == "step":
-        midpoint = replace(config, residual="speed")
-        theta = _solve(lambda t: objective(balance, prior, data, midpoint, t, noise), theta, config)
+        start = replace(config, residual="torque")
+        floor = torch.full_like(noise, start.noise_floor)
+        theta = _solve(lambda t: objective(balance, prior, data, start, t, floor), theta, config)
 
     def solved(theta: Tensor, noise: Tensor) -> Tensor:
         return _solve(lambda t: objective(balance, prior, data, config, t, noise), theta, config)
