@@ -14,7 +14,7 @@ first condition does; their free-space transitions identify the arm
 compensation gain κ (truth: the payload and 1) and the one-step joint-speed error (rad/s) of
 the identified model, of the URDF's and of the simulated arm's own
 (:meth:`lolgps_torch.task.PegTask.plant_model`) on a second condition's first rollouts (a hole
-0.04 m away), which the identification has not seen.
+0.04 m away), which the identification has not seen, and the identification's wall time.
 
 Noise on the observed joint velocities enters the torque balance through the accelerations
 ``(qd_1 - qd_0) / dt`` that multiply the inertial parameters: an error in the regressors,
@@ -24,6 +24,7 @@ which biases least squares whatever the weighting.
 from __future__ import annotations
 
 import argparse
+import time
 from dataclasses import replace
 
 from lolgps_torch.cli import run
@@ -50,9 +51,9 @@ def parse_args() -> argparse.Namespace:
 def main() -> None:
     args = parse_args()
     print(
-        "| sensor noise (rad) | residual | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) |"
+        "| sensor noise (rad) | residual | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) | identification (s) |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for noise in args.obs_noise:
         plant = PlantConfig(payload=args.payload, gravity_compensation="model", obs_noise=noise)
         task = PegTask(TaskConfig(urdf=args.urdf, plant=plant), n_worlds=5)
@@ -68,13 +69,15 @@ def main() -> None:
             for residual in args.residual:
                 for rounds in args.noise_rounds:
                     setting = IdentifyConfig(noise_rounds=rounds, residual=residual)
+                    start = time.perf_counter()
                     found = task.identify_model(setting)
+                    seconds = time.perf_counter() - start
                     assert found is not None
                     identified, urdf, own, _ = task.one_step_errors(unseen)
                     print(
                         f"| {noise:g} | {residual} | {rounds} | {float(found.payload):.3f} | "
                         f"{float(found.compensation):.3f} | "
-                        f"{identified:.4f} / {urdf:.4f} / {own:.4f} |"
+                        f"{identified:.4f} / {urdf:.4f} / {own:.4f} | {seconds:.1f} |"
                     )
         finally:
             task.close()
