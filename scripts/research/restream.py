@@ -3,7 +3,7 @@
     python scripts/research/restream.py --run DIR [--steps N] [--batch-size B] [--lr LR]
                                         [--adam-dtype float32] [--repairs R] [--seed S]
                                         [--onpolicy] [--onpolicy-rounds R] [--onpolicy-noisy N]
-                                        [--onpolicy-gate G] [--jitter MM]
+                                        [--onpolicy-gate G] [--jitter MM] [--areas]
 
 Local learning is not repeated: condition ``k``'s D_g (its stored samples and controllers)
 is distilled into the policy of the S-step of ``k - 1`` with the replay of ``0 .. k-1``, as
@@ -16,7 +16,8 @@ then the final policy's distances at every position and its fit on D_g in teache
 deviations (``scripts/research/precision.py``'s ``fit``), its slope fit (the error of its
 derivative along :func:`state_directions` against p_cur's ``K_t v``, in the same units, per
 window of ten steps) and the positions it reaches with the hole moved by ``--jitter`` mm along
-+x, -x, +y and -y, so S-step settings are compared on the same data in a minute rather than
++x, -x, +y and -y (and, with ``--areas``, its success in each test area of
+``scripts/evaluate.py``, noiseless), so S-step settings are compared on the same data in a minute rather than
 re-running streams. With the run's own S-step settings and seed (the default seed) it repeats
 the run's S-steps exactly.
 """
@@ -35,6 +36,7 @@ from lolgps_torch.cli import run
 from lolgps_torch.data import ConditionRecord, ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
+from lolgps_torch.evaluation.areas import AreaConfig, sample_area_positions
 from lolgps_torch.evaluation.retention import fit_by_window
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, consistent_states
 from lolgps_torch.lolgps.run import load_run
@@ -63,6 +65,10 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--adam-dtype", choices=("float32", "float64"), default=d.policy.adam_dtype)
     parser.add_argument("--repairs", type=int, default=d.repairs, help="(%(default)s)")
     parser.add_argument(
+        "--onpolicy", action=argparse.BooleanOptionalAction, default=d.onpolicy,
+        help="label the states the policy visits (%(default)s)",
+    )  # fmt: skip
+    parser.add_argument(
         "--onpolicy-rounds", type=int, default=d.onpolicy_rounds, help="(%(default)s)"
     )
     parser.add_argument(
@@ -72,6 +78,7 @@ def parse_args() -> argparse.Namespace:
         "--onpolicy-gate", type=float, default=d.onpolicy_gate, help="(%(default)s)"
     )
     parser.add_argument("--jitter", type=float, default=4.0, help="mm (%(default)s)")
+    parser.add_argument("--areas", action="store_true", help="test the final policy's areas")
     parser.add_argument(
         "--seed",
         type=int,
@@ -147,6 +154,14 @@ def main() -> None:
         moved = [(x + a, y + b) for x, y in offsets for a, b in ((j, 0), (-j, 0), (0, j), (0, -j))]
         jittered = policy_distances(task, policy, moved)
         slope = slope_by_window(task, policy, loaded.records)
+        if args.areas:
+            areas = sample_area_positions(AreaConfig())
+            rates = []
+            for group in areas:
+                d = policy_distances(task, policy, [(float(a), float(b)) for a, b in group])
+                rates.append(sum(v < threshold for v in d) / len(d))
+            print("areas: " + " / ".join(f"{100 * r:.0f}" for r in rates)
+                  + f" %, average {sum(rates) / len(rates):.3f}")  # fmt: skip
     finally:
         task.close()
     fit = fit_by_window(policy, loaded)
