@@ -4,6 +4,7 @@
                                         [--adam-dtype float32] [--repairs R] [--seed S]
                                         [--onpolicy] [--onpolicy-rounds R] [--onpolicy-noisy N]
                                         [--onpolicy-gate G] [--jitter MM] [--areas]
+                                        [--augment N] [--augment-scale S]
 
 Local learning is not repeated: condition ``k``'s D_g (its stored samples and controllers)
 is distilled into the policy of the S-step of ``k - 1`` with the replay of ``0 .. k-1``, as
@@ -79,6 +80,8 @@ def parse_args() -> argparse.Namespace:
     )
     parser.add_argument("--jitter", type=float, default=4.0, help="mm (%(default)s)")
     parser.add_argument("--areas", action="store_true", help="test the final policy's areas")
+    parser.add_argument("--augment", type=int, default=None, help="(default: the run's)")
+    parser.add_argument("--augment-scale", type=float, default=None, help="(default: the run's)")
     parser.add_argument(
         "--seed",
         type=int,
@@ -97,8 +100,8 @@ def main() -> None:
     run = loaded.info.stream
     seed = run.seed if args.seed is None else args.seed
     stream = StreamConfig(
-        augment=run.augment,
-        augment_scale=run.augment_scale,
+        augment=run.augment if args.augment is None else args.augment,
+        augment_scale=run.augment_scale if args.augment_scale is None else args.augment_scale,
         seed=seed,
         repairs=args.repairs,
         onpolicy=args.onpolicy,
