@@ -19,8 +19,11 @@ derivative along :func:`state_directions` against p_cur's ``K_t v``, in the same
 window of ten steps) and the positions it reaches with the hole moved by ``--jitter`` mm along
 +x, -x, +y and -y (and, with ``--areas``, its success in each test area of
 ``scripts/evaluate.py``, noiseless), so S-step settings are compared on the same data in a minute rather than
-re-running streams. With the run's own S-step settings and seed (the default seed) it repeats
-the run's S-steps exactly.
+re-running streams. With the run's own S-step settings and seed (the default seed) it runs the
+run's S-steps on the same data, but not always to the same bits: the stream's visits were rolled
+out in other batches (on its rollout workers), and the closed loop with contact can take another
+course from a difference in the last bit (of the 12 KUKA streams of ba5b4c9, seeds 0, 2, 4, 5
+and 6 re-ran to the run's own test areas, seeds 1, 3 and 11 did not).
 """
 
 from __future__ import annotations
