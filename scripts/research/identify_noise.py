@@ -2,7 +2,7 @@
 
     python scripts/research/identify_noise.py [--urdf URDF] [--payload KG]
         [--obs-noise 0 0.001] [--noise-rounds 0 1] [--residual torque speed] [--iterations 3]
-        [--action-delay SECONDS] [--seed S]
+        [--action-delay SECONDS [--detect-delay]] [--seed S]
 
 For each sensor noise (rad; the joint velocities get 10 times as much) the arm carries
 ``--payload`` kg that its URDF lacks, compensated by the URDF's gravity alone
@@ -16,10 +16,11 @@ the identified model, of the URDF's and of the simulated arm's own
 (:meth:`lolgps_torch.task.PegTask.plant_model`) on a second condition's first rollouts (a hole
 0.04 m away), which the identification has not seen, and the identification's wall time.
 
-With ``--action-delay`` the arm's commands act that late, and the learner allows for the delay
-that the stream finds (:func:`lolgps_torch.cli.detect_delay` and
-:func:`lolgps_torch.cli.allow_for_delay`: the state carries the last actions, and from half a
-control step on the first controller is the hold rather than one planned on the model).
+With ``--action-delay`` the arm's commands act that late, and the learner allows for that
+delay as the stream's ``--known-delay`` makes it (:func:`lolgps_torch.cli.allow_for_delay`: the
+state carries the last actions, and from half a control step on the first controller is the
+hold rather than one planned on the model); with ``--detect-delay``, for the delay the stream
+estimates instead (:func:`lolgps_torch.cli.detect_delay`, none where it finds none).
 
 Noise on the observed joint velocities enters the torque balance through the accelerations
 ``(qd_1 - qd_0) / dt`` that multiply the inertial parameters: an error in the regressors,
@@ -52,6 +53,11 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument(
         "--action-delay", type=float, default=0.0, help="s between a command and its action"
     )
+    parser.add_argument(
+        "--detect-delay",
+        action="store_true",
+        help="allow for the delay the stream estimates, not the true one",
+    )
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args()
 
@@ -59,9 +65,9 @@ def parse_args() -> argparse.Namespace:
 def main() -> None:
     args = parse_args()
     print(
-        "| sensor noise (rad) | residual | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) | identification (s) |"
+        "| sensor noise (rad) | delay allowed for (s) | residual | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) | identification (s) |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for noise in args.obs_noise:
         plant = PlantConfig(
             payload=args.payload,
@@ -71,8 +77,8 @@ def main() -> None:
         )
         task_config = TaskConfig(urdf=args.urdf, plant=plant)
         config = LocalConfig(identify=True)
-        if args.action_delay > 0.0:
-            delay = detect_delay(task_config, True)
+        delay = detect_delay(task_config, True) if args.detect_delay else args.action_delay
+        if delay > 0.0:
             task_config, config = allow_for_delay(task_config, config, delay)
         task = PegTask(task_config, n_worlds=5)
         try:
@@ -92,7 +98,7 @@ def main() -> None:
                     assert found is not None
                     identified, urdf, own, _ = task.one_step_errors(unseen)
                     print(
-                        f"| {noise:g} | {residual} | {rounds} | {float(found.payload):.3f} | "
+                        f"| {noise:g} | {delay:g} | {residual} | {rounds} | {float(found.payload):.3f} | "
                         f"{float(found.compensation):.3f} | "
                         f"{identified:.4f} / {urdf:.4f} / {own:.4f} | {seconds:.1f} |"
                     )
