@@ -391,13 +391,19 @@ class PegTask:
 
     def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
         """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the
-        identified arm's (None, the model unchanged, before any transition)."""
+        identified arm's (None, the model unchanged, before any transition). With a known
+        delay (``WorldConfig.known_delay``) each physics step of a transition is driven by the
+        command that :class:`ControlStep` has act there, from the state's action history; an
+        arm late by a delay the learner does not know is identified as one whose commands act
+        at once (:mod:`lolgps_torch.dynamics.identify`)."""
         if not self._seen or self._seen[0].q0.shape[0] == 0:
             return None
-        urdf = ControlStep(self.arm, self.config.world, device=self.device).urdf
+        step = ControlStep(self.arm, self.config.world, device=self.device)
+        urdf, world = step.urdf, self.config.world
         effort = torch.tensor(self.arm.effort, dtype=torch.float64, device=self.device)
+        # each physics step driven by the command the known delay makes act there
         balance = TorqueBalance(
-            urdf, effort, self.config.world.dt, LINK_DAMPING, self.config.world.substeps
+            urdf, effort, world.dt, LINK_DAMPING, world.substeps, tuple(step.late)
         )
         params = identify(balance, self._seen[0], config)
         identified = (identified_dynamics(urdf, params), float(params.compensation))
