@@ -329,18 +329,24 @@ class PegTask:
 
     def free_transitions(self, samples: Trajectories) -> tuple[Tensor, Tensor]:
         """The states ``[N, T+1, dX]`` of ``samples`` (the final one appended) and which of
-        their transitions ``[N, T]`` are free of contact (the tip higher than the table by
-        :data:`CLEARANCE` before and after) and of the joint limits (by :data:`LIMIT_MARGIN`
-        rad)."""
+        their transitions ``[N, T]`` are free of contact (before and after, the tip higher
+        than the table by :data:`CLEARANCE` and the peg pointing down, its top above its tip,
+        so that no part of it is lower than the tip by more than its radius) and of the joint
+        limits (by :data:`LIMIT_MARGIN` rad)."""
         lay = self.layout
         lower, upper = (
             torch.tensor(limit, dtype=torch.float64, device=self.device)
             for limit in (self.arm.lower, self.arm.upper)
         )
         x = torch.cat([samples.x, samples.final_state[:, None]], 1)
-        q, tip_height = x[..., lay.q], x[..., lay.points][..., 2]
-        clear = (tip_height > self.config.world.depth + CLEARANCE) & (
-            torch.minimum(q - lower, upper - q).amin(-1) > LIMIT_MARGIN
+        q, points = x[..., lay.q], x[..., lay.points]
+        tip_height = points[..., 2]
+        # the points are offsets from targets, the top's above the tip's by the separation
+        top_over_tip = points[..., 5] - tip_height - self.arm.point_offsets[1][2]
+        clear = (
+            (tip_height > self.config.world.depth + CLEARANCE)
+            & (top_over_tip > 0.0)
+            & (torch.minimum(q - lower, upper - q).amin(-1) > LIMIT_MARGIN)
         )
         return x, clear[:, :-1] & clear[:, 1:]
 

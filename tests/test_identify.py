@@ -268,3 +268,28 @@ def test_the_learner_reports_the_identified_arm_on_unseen_rollouts() -> None:
     assert report.error_identified < 0.2 * report.error_urdf
     assert report.error_plant < 1e-8  # the simulated arm's own model: exact without noise
     assert report.to_json()["event"] == "identified"
+
+
+def test_a_peg_lying_on_the_table_is_not_free() -> None:
+    """A transition counts as free of contact only with the tip above the table by the
+    clearance and the peg pointing down: tilted up, its far end reaches lower than the tip."""
+    from lolgps_torch.task import PegTask, TaskConfig
+    from lolgps_torch.types import Trajectories
+
+    task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
+    try:
+        lay, T = task.layout, 2
+        x = torch.zeros(3, T + 1, lay.dX, dtype=torch.float64)
+        x[..., lay.q] = task.q0
+        high = task.config.world.depth + 0.05  # the tip 5 cm above the table
+        x[..., lay.points.start + 2] = high
+        x[0, ..., lay.points.start + 5] = high  # pointing down: the top 0.15 m above the tip
+        x[1, ..., lay.points.start + 5] = high - 0.16  # the top 1 cm below the tip
+        x[2, ..., lay.points.start + 2] = task.config.world.depth + 0.01  # the tip too low
+        zeros = torch.zeros(3, T, dtype=torch.float64)
+        u = torch.zeros(3, T, lay.dU, dtype=torch.float64)
+        samples = Trajectories(x[:, :-1], u, zeros, zeros[:, 0], zeros[:, 0] > 0, x[:, -1])
+        _, free = task.free_transitions(samples)
+    finally:
+        task.close()
+    assert free.tolist() == [[True, True], [False, False], [False, False]]
