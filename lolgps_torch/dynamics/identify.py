@@ -48,6 +48,33 @@ sensor noise on the joint speeds sits in its regressors (an error that least squ
 average away: with 1 mrad of noise the KUKA's 1 kg payload came out 12 % light); in ``r_v`` and
 ``r_s`` the noise is only on the measured side and in the start state.
 
+A command delay. With a known delay of D physics steps (``WorldConfig.known_delay`` to the
+nearest physics step: the stream's estimate or ``--known-delay``) the state carries the last
+actions, and the transitions carry them as ``commands = (u_t, u_{t-1}, ..., u_{t-h})``;
+physics step s of the control step is driven by ``u_{t-j(s)}``, ``j(s) = max(0, ceil((D - s) / substeps))``, the
+schedule of the world's model (``ControlStep.late``, :mod:`lolgps_torch.sim.model`, passed as
+``TorqueBalance.late``). The simulator adds the compensation evaluated at the start of the
+control step to whichever command acts, so the step residual holds
+
+    ``tau_s = clip(u_{t-j(s)} + c(q_0), -effort, effort)``
+
+in physics step s, and at the truth it is again zero to rounding (PyBullet's transitions 20
+and 50 ms late, ``tests/test_identify.py``). The midpoint forms evaluate the dynamics once
+and take the torque's mean over the step, ``sum_s tau_s / substeps``: the mean acceleration is
+the mean torque's to the same first order in dt as the midpoint itself, and the torque balance
+stays linear in the inertial parameters, the step residual's start. They are kept rather than
+refused because the step residual starts from the torque balance's estimate. Without a delay
+(j = 0 throughout) every residual is the one above, bit for bit. Two approximations are the
+world model's too: the state holds each past command as it acted when issued (within the
+effort limits, with that step's compensation), so a command clipped then is replayed off by
+the change of the compensation; and a learner that adds its own ``g_0`` to its commands
+(``WorldConfig.compensate_gravity``) sent it at the angles of the step it issued the command
+in, which ``c(q_0)`` takes as the current.
+
+A delay the learner does not know (no action history in the state: ``--no-detect-delay``, or
+a delay the stream's estimate misses) leaves u_t held over the whole step, and the fit puts
+the delayed response into θ: κ and the payload come out wrong (docs/RESULTS.md section 8).
+
 σ (``speed_noise`` or ``torque_noise``) starts the same for every joint; the MAP estimate is
 then solved again with each joint's σ_j the root-mean-square of its residuals (never below
 that), so that noisy or ill-modelled joints weigh no more against the prior than their
