@@ -51,9 +51,9 @@ average away: with 1 mrad of noise the KUKA's 1 kg payload came out 12 % light);
 A command delay. With a known delay of D physics steps (``WorldConfig.known_delay`` to the
 nearest physics step: the stream's estimate or ``--known-delay``) the state carries the last
 actions, and the transitions carry them as ``commands = (u_t, u_{t-1}, ..., u_{t-h})``;
-physics step s of the control step is driven by ``u_{t-j(s)}``, ``j(s) = max(0, ceil((D - s) / substeps))``, the
-schedule of the world's model (``ControlStep.late``, :mod:`lolgps_torch.sim.model`, passed as
-``TorqueBalance.late``). The simulator adds the compensation evaluated at the start of the
+physics step s of the control step is driven by ``u_{t-j(s)}``,
+``j(s) = max(0, ceil((D - s) / substeps))``, the schedule of the world's model
+(``ControlStep.late``, :mod:`lolgps_torch.sim.model`, passed as ``TorqueBalance.late``). The simulator adds the compensation evaluated at the start of the
 control step to whichever command acts, so the step residual holds
 
     ``tau_s = clip(u_{t-j(s)} + c(q_0), -effort, effort)``
