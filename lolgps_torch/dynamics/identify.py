@@ -53,8 +53,9 @@ nearest physics step: the stream's estimate or ``--known-delay``) the state carr
 actions, and the transitions carry them as ``commands = (u_t, u_{t-1}, ..., u_{t-h})``;
 physics step s of the control step is driven by ``u_{t-j(s)}``,
 ``j(s) = max(0, ceil((D - s) / substeps))``, the schedule of the world's model
-(``ControlStep.late``, :mod:`lolgps_torch.sim.model`, passed as ``TorqueBalance.late``). The simulator adds the compensation evaluated at the start of the
-control step to whichever command acts, so the step residual holds
+(``ControlStep.late``, :mod:`lolgps_torch.sim.model`, passed as ``TorqueBalance.late``).
+The simulator adds the compensation evaluated at the start of the control step to whichever
+command acts, so the step residual holds
 
     ``tau_s = clip(u_{t-j(s)} + c(q_0), -effort, effort)``
 
