@@ -329,18 +329,24 @@ class PegTask:
 
     def free_transitions(self, samples: Trajectories) -> tuple[Tensor, Tensor]:
         """The states ``[N, T+1, dX]`` of ``samples`` (the final one appended) and which of
-        their transitions ``[N, T]`` are free of contact (the tip higher than the table by
-        :data:`CLEARANCE` before and after) and of the joint limits (by :data:`LIMIT_MARGIN`
-        rad)."""
+        their transitions ``[N, T]`` are free of contact (before and after, the tip higher
+        than the table by :data:`CLEARANCE` and the peg pointing down, its top above its tip,
+        so that no part of it is lower than the tip by more than its radius) and of the joint
+        limits (by :data:`LIMIT_MARGIN` rad)."""
         lay = self.layout
         lower, upper = (
             torch.tensor(limit, dtype=torch.float64, device=self.device)
             for limit in (self.arm.lower, self.arm.upper)
         )
         x = torch.cat([samples.x, samples.final_state[:, None]], 1)
-        q, tip_height = x[..., lay.q], x[..., lay.points][..., 2]
-        clear = (tip_height > self.config.world.depth + CLEARANCE) & (
-            torch.minimum(q - lower, upper - q).amin(-1) > LIMIT_MARGIN
+        q, points = x[..., lay.q], x[..., lay.points]
+        tip_height = points[..., 2]
+        # the points are offsets from targets, the top's above the tip's by the separation
+        top_over_tip = points[..., 5] - tip_height - self.arm.point_offsets[1][2]
+        clear = (
+            (tip_height > self.config.world.depth + CLEARANCE)
+            & (top_over_tip > 0.0)
+            & (torch.minimum(q - lower, upper - q).amin(-1) > LIMIT_MARGIN)
         )
         return x, clear[:, :-1] & clear[:, 1:]
 
@@ -391,13 +397,19 @@ class PegTask:
 
     def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
         """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the
-        identified arm's (None, the model unchanged, before any transition)."""
+        identified arm's (None, the model unchanged, before any transition). With a known
+        delay (``WorldConfig.known_delay``) each physics step of a transition is driven by the
+        command that :class:`ControlStep` has act there, from the state's action history; an
+        arm late by a delay the learner does not know is identified as one whose commands act
+        at once (:mod:`lolgps_torch.dynamics.identify`)."""
         if not self._seen or self._seen[0].q0.shape[0] == 0:
             return None
-        urdf = ControlStep(self.arm, self.config.world, device=self.device).urdf
+        step = ControlStep(self.arm, self.config.world, device=self.device)
+        urdf, world = step.urdf, self.config.world
         effort = torch.tensor(self.arm.effort, dtype=torch.float64, device=self.device)
+        # each physics step driven by the command the known delay makes act there
         balance = TorqueBalance(
-            urdf, effort, self.config.world.dt, LINK_DAMPING, self.config.world.substeps
+            urdf, effort, world.dt, LINK_DAMPING, world.substeps, tuple(step.late)
         )
         params = identify(balance, self._seen[0], config)
         identified = (identified_dynamics(urdf, params), float(params.compensation))

@@ -48,6 +48,34 @@ sensor noise on the joint speeds sits in its regressors (an error that least squ
 average away: with 1 mrad of noise the KUKA's 1 kg payload came out 12 % light); in ``r_v`` and
 ``r_s`` the noise is only on the measured side and in the start state.
 
+A command delay. With a known delay of D physics steps (``WorldConfig.known_delay`` to the
+nearest physics step: the stream's estimate or ``--known-delay``) the state carries the last
+actions, and the transitions carry them as ``commands = (u_t, u_{t-1}, ..., u_{t-h})``;
+physics step s of the control step is driven by ``u_{t-j(s)}``,
+``j(s) = max(0, ceil((D - s) / substeps))``, the schedule of the world's model
+(``ControlStep.late``, :mod:`lolgps_torch.sim.model`, passed as ``TorqueBalance.late``).
+The simulator adds the compensation evaluated at the start of the control step to whichever
+command acts, so the step residual holds
+
+    ``tau_s = clip(u_{t-j(s)} + c(q_0), -effort, effort)``
+
+in physics step s, and at the truth it is again zero to rounding (PyBullet's transitions 20
+and 50 ms late, ``tests/test_identify.py``). The midpoint forms evaluate the dynamics once
+and take the torque's mean over the step, ``sum_s tau_s / substeps``: the mean acceleration is
+the mean torque's to the same first order in dt as the midpoint itself, and the torque balance
+stays linear in the inertial parameters, the step residual's start. They are kept rather than
+refused because the step residual starts from the torque balance's estimate. Without a delay
+(j = 0 throughout) every residual is the one above, bit for bit. Two approximations are the
+world model's too: the state holds each past command as it acted when issued (within the
+effort limits, with that step's compensation), so a command clipped then is replayed off by
+the change of the compensation; and a learner that adds its own ``g_0`` to its commands
+(``WorldConfig.compensate_gravity``) sent it at the angles of the step it issued the command
+in, which ``c(q_0)`` takes as the current.
+
+A delay the learner does not know (no action history in the state: ``--no-detect-delay``, or
+a delay the stream's estimate misses) leaves u_t held over the whole step, and the fit puts
+the delayed response into θ: κ and the payload come out wrong (docs/RESULTS.md section 8).
+
 σ (``speed_noise`` or ``torque_noise``) starts the same for every joint; the MAP estimate is
 then solved again with each joint's σ_j the root-mean-square of its residuals (never below
 that), so that noisy or ill-modelled joints weigh no more against the prior than their
@@ -192,22 +220,32 @@ class ArmParameters:
 
 
 class Transitions(NamedTuple):
-    """Observed control steps ``[B, n]`` each: start angles and velocities, the command, end
-    angles and velocities."""
+    """Observed control steps: start angles and velocities ``[B, n]``, the commands
+    ``[B, h+1, n]`` (the transition's own u_t, then the h past actions the state carries,
+    newest first: ``u_{t-1}, ..., u_{t-h}``; h = 0 without a known delay), end angles and
+    velocities ``[B, n]``."""
 
     q0: Tensor
     qd0: Tensor
-    u: Tensor
+    commands: Tensor
     q1: Tensor
     qd1: Tensor
+
+    @property
+    def u(self) -> Tensor:
+        """The transitions' own commands u_t ``[B, n]``."""
+        return self.commands[:, 0]
 
     @staticmethod
     def from_rollouts(x: Tensor, u: Tensor, layout: StateLayout, keep: Tensor) -> Transitions:
         """The transitions of rollouts ``x: [N, T+1, dX]`` (the final state included),
-        ``u: [N, T, dU]`` where ``keep: [N, T]`` (e.g. free of contact)."""
+        ``u: [N, T, dU]`` where ``keep: [N, T]`` (e.g. free of contact); the past commands
+        from the start states' action history (:attr:`StateLayout.actions`)."""
         start, end = x[:, :-1][keep], x[:, 1:][keep]
+        past = start[:, layout.actions].unflatten(-1, (layout.history, layout.dU))
+        commands = torch.cat([u[keep][:, None], past], 1)
         return Transitions(
-            start[:, layout.q], start[:, layout.qd], u[keep], end[:, layout.q], end[:, layout.qd]
+            start[:, layout.q], start[:, layout.qd], commands, end[:, layout.q], end[:, layout.qd]
         )
 
 
@@ -234,19 +272,45 @@ def identified_dynamics(dynamics: ArmDynamics, params: ArmParameters) -> ArmDyna
 
 class TorqueBalance(NamedTuple):
     """What the residual needs besides θ and the data: the URDF's dynamics, the actuator
-    limits ``[n]``, the control step (s), the simulator's link damping (linear, angular) and
-    its physics steps per control step."""
+    limits ``[n]``, the control step (s), the simulator's link damping (linear, angular), its
+    physics steps per control step and which command drives each of them: ``late[s] = j``,
+    physics step s is driven by ``u_{t-j}`` (:attr:`ControlStep.late
+    <lolgps_torch.sim.model.ControlStep>` for the world's known delay; empty: by u_t
+    throughout, no delay)."""
 
     dynamics: ArmDynamics
     effort: Tensor
     dt: float
     link_damping: tuple[float, float]
     substeps: int
+    late: tuple[int, ...] = ()
 
     def applied(self, params: ArmParameters, q: Tensor, u: Tensor) -> Tensor:
         """``clip(u + κ g_0(q), -effort, effort)``."""
         torque = u + params.compensation * self.dynamics.gravity_torque(q)
         return torch.minimum(torch.maximum(torque, -self.effort), self.effort)
+
+    def schedule(self) -> tuple[int, ...]:
+        """j(s) for each physics step s: ``late``, or 0 throughout when it is empty."""
+        late = self.late or (0,) * self.substeps
+        if len(late) != self.substeps or min(late) < 0:
+            raise LolgpsError(
+                f"the delay's schedule {late} must name a command (>= 0) for each of the "
+                f"{self.substeps} physics steps"
+            )
+        return late
+
+    def held(self, params: ArmParameters, data: Transitions) -> dict[int, Tensor]:
+        """The torque each command that drives a physics step holds, by how many control
+        steps back it was issued: ``{j: clip(u_{t-j} + κ g_0(q_0), -effort, effort)}``
+        (``[B, n]`` each) for every j of :meth:`schedule`."""
+        late = self.schedule()
+        if max(late) >= data.commands.shape[1]:
+            raise LolgpsError(
+                f"a command {max(late)} control steps back drives the step, but the "
+                f"transitions carry {data.commands.shape[1] - 1} past commands"
+            )
+        return {j: self.applied(params, data.q0, data.commands[:, j]) for j in sorted(set(late))}
 
     def residual(
         self, params: ArmParameters, data: Transitions, config: IdentifyConfig, noise: Tensor
@@ -254,10 +318,11 @@ class TorqueBalance(NamedTuple):
         """``r / σ: [B, n]``, the torque, speed or step residual as ``config.residual`` says
         (module docstring), with each joint's σ ``noise [n]``."""
         dyn = identified_dynamics(self.dynamics, params)
-        applied = self.applied(params, data.q0, data.u)
+        held, late = self.held(params, data), self.schedule()
         if config.residual == "step":
             q, qd, h = data.q0, data.qd0, self.dt / self.substeps
-            for _ in range(self.substeps):
+            for j in late:
+                applied = held[j]
                 frames = dyn.frames(q)
                 wrench = dyn.link_damping(frames, qd, *self.link_damping)
                 resisting = dyn.joint_damping * qd + params.friction * torch.tanh(
@@ -266,6 +331,12 @@ class TorqueBalance(NamedTuple):
                 qd = qd + h * dyn.forward_dynamics_at(frames, qd, applied - resisting, wrench)
                 q = q + h * qd
             return (data.qd1 - qd) / noise
+        # the midpoint forms: the torque's mean over the control step
+        if len(held) == 1:
+            (applied,) = held.values()
+        else:
+            parts = [late.count(j) / self.substeps * tau for j, tau in held.items()]
+            applied = torch.stack(parts).sum(0)
         qm, qdm = (data.q0 + data.q1) / 2, (data.qd0 + data.qd1) / 2
         frames = dyn.frames(qm)
         wrench = dyn.link_damping(frames, qdm, *self.link_damping)

@@ -2,7 +2,7 @@
 
     python scripts/research/identify_noise.py [--urdf URDF] [--payload KG]
         [--obs-noise 0 0.001] [--noise-rounds 0 1] [--residual torque speed] [--iterations 3]
-        [--seed S]
+        [--action-delay SECONDS [--detect-delay]] [--seed S]
 
 For each sensor noise (rad; the joint velocities get 10 times as much) the arm carries
 ``--payload`` kg that its URDF lacks, compensated by the URDF's gravity alone
@@ -16,6 +16,12 @@ the identified model, of the URDF's and of the simulated arm's own
 (:meth:`lolgps_torch.task.PegTask.plant_model`) on a second condition's first rollouts (a hole
 0.04 m away), which the identification has not seen, and the identification's wall time.
 
+With ``--action-delay`` the arm's commands act that late, and the learner allows for that
+delay as the stream's ``--known-delay`` makes it (:func:`lolgps_torch.cli.allow_for_delay`: the
+state carries the last actions, and from half a control step on the first controller is the
+hold rather than one planned on the model); with ``--detect-delay``, for the delay the stream
+estimates instead (:func:`lolgps_torch.cli.detect_delay`, none where it finds none).
+
 Noise on the observed joint velocities enters the torque balance through the accelerations
 ``(qd_1 - qd_0) / dt`` that multiply the inertial parameters: an error in the regressors,
 which biases least squares whatever the weighting.
@@ -27,7 +33,7 @@ import argparse
 import time
 from dataclasses import replace
 
-from lolgps_torch.cli import run
+from lolgps_torch.cli import allow_for_delay, detect_delay, run
 from lolgps_torch.dynamics.identify import IdentifyConfig
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
 from lolgps_torch.sim.plant import PlantConfig
@@ -44,6 +50,14 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--noise-rounds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--residual", nargs="+", default=["torque", "speed", "step"])
     parser.add_argument("--iterations", type=int, default=3, help="batches to identify from")
+    parser.add_argument(
+        "--action-delay", type=float, default=0.0, help="s between a command and its action"
+    )
+    parser.add_argument(
+        "--detect-delay",
+        action="store_true",
+        help="allow for the delay the stream estimates, not the true one",
+    )
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args()
 
@@ -51,14 +65,23 @@ def parse_args() -> argparse.Namespace:
 def main() -> None:
     args = parse_args()
     print(
-        "| sensor noise (rad) | residual | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) | identification (s) |"
+        "| sensor noise (rad) | delay allowed for (s) | residual | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) | identification (s) |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for noise in args.obs_noise:
-        plant = PlantConfig(payload=args.payload, gravity_compensation="model", obs_noise=noise)
-        task = PegTask(TaskConfig(urdf=args.urdf, plant=plant), n_worlds=5)
+        plant = PlantConfig(
+            payload=args.payload,
+            gravity_compensation="model",
+            obs_noise=noise,
+            action_delay=args.action_delay,
+        )
+        task_config = TaskConfig(urdf=args.urdf, plant=plant)
+        config = LocalConfig(identify=True)
+        delay = detect_delay(task_config, True) if args.detect_delay else args.action_delay
+        if delay > 0.0:
+            task_config, config = allow_for_delay(task_config, config, delay)
+        task = PegTask(task_config, n_worlds=5)
         try:
-            config = LocalConfig(identify=True)
             first = LocalLearner(task, (0.0, 0.0), config, args.seed)
             for _ in range(args.iterations):
                 first.sample(first.p_cur)  # recorded for the identification
@@ -75,7 +98,7 @@ def main() -> None:
                     assert found is not None
                     identified, urdf, own, _ = task.one_step_errors(unseen)
                     print(
-                        f"| {noise:g} | {residual} | {rounds} | {float(found.payload):.3f} | "
+                        f"| {noise:g} | {delay:g} | {residual} | {rounds} | {float(found.payload):.3f} | "
                         f"{float(found.compensation):.3f} | "
                         f"{identified:.4f} / {urdf:.4f} / {own:.4f} | {seconds:.1f} |"
                     )
