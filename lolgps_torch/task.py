@@ -390,10 +390,10 @@ class PegTask:
         simulated = replace(self.arm, urdf_text=text)
         exact = ControlStep(simulated, self.config.world, self.device)
         if plant.gravity_compensation == "plant":  # the simulated body's own gravity
-            own = (exact.urdf, 1.0 + learner)
+            own = (exact.urdf, 1.0 + learner, 0.0)
             return ControlStep(simulated, self.config.world, self.device, own)
         kappa = float(plant.gravity_compensation == "model") + learner  # the URDF's
-        return ControlStep(self.arm, self.config.world, self.device, (exact.urdf, kappa))
+        return ControlStep(self.arm, self.config.world, self.device, (exact.urdf, kappa, 0.0))
 
     def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
         """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the
@@ -412,7 +412,11 @@ class PegTask:
             urdf, effort, world.dt, LINK_DAMPING, world.substeps, tuple(step.late)
         )
         params = identify(balance, self._seen[0], config)
-        identified = (identified_dynamics(urdf, params), float(params.compensation))
+        identified = (
+            identified_dynamics(urdf, params),
+            float(params.compensation),
+            float(params.own),
+        )
         self._model = ControlStep(self.arm, self.config.world, self.device, identified)
         return params
 
