@@ -17,6 +17,7 @@ from lolgps_torch.dynamics.identify import (
     identified_dynamics,
     identify,
     objective,
+    physical,
 )
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
@@ -312,3 +313,35 @@ def test_a_peg_lying_on_the_table_is_not_free() -> None:
     finally:
         task.close()
     assert free.tolist() == [[True, True], [False, False], [False, False]]
+
+
+def test_an_arm_that_cannot_exist_is_not_identified(arm: ArmSpec) -> None:
+    """A body of negative mass is not physical; the URDF's arm is."""
+    balance = _balance(arm, WorldConfig())
+    prior = ArmParameters.urdf(balance.dynamics)
+    assert physical(balance.dynamics, prior)
+    scale = prior.mass_scale.clone()
+    scale[3] = -0.5
+    assert not physical(balance.dynamics, replace(prior, mass_scale=scale))
+
+
+def test_a_failed_identification_keeps_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where no arm that can exist fits the transitions, the task warns and keeps its model."""
+    import lolgps_torch.task as task_module
+    from lolgps_torch.errors import NumericalError
+    from lolgps_torch.task import PegTask, TaskConfig
+
+    def fails(*_: object) -> ArmParameters:
+        raise NumericalError("no arm")
+
+    monkeypatch.setattr(task_module, "identify", fails)
+    task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
+    try:
+        data, _ = _rollouts(task.arm, PlantConfig(), rollouts=1)
+        task._seen = [data]
+        model = task.model
+        with pytest.warns(UserWarning, match="could not be identified"):
+            assert task.identify_model(IdentifyConfig()) is None
+        assert task.model is model
+    finally:
+        task.close()

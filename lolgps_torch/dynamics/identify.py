@@ -100,7 +100,7 @@ from typing import Literal, NamedTuple, get_args
 import torch
 from torch import Tensor
 
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.rigid_body import ArmDynamics, BodyParameters
 from lolgps_torch.state import StateLayout
 
@@ -394,16 +394,43 @@ def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) 
     starts from the torque balance's estimate (solved once, each joint's σ the floor), whose
     residual is linear in the inertial parameters: from the prior, or from the midpoint form's
     estimate, its Gauss-Newton steps can stall in a local minimum with a negative payload
-    (``tests/test_identify.py``)."""
+    (``tests/test_identify.py``). Where that start leads to an arm that cannot exist (a body of
+    mass not above zero, :func:`physical`), the prior is the start instead; where that fails
+    too, :class:`NumericalError`."""
     if data.q0.shape[0] == 0:
         raise LolgpsError("identification needs at least one transition")
     prior = ArmParameters.urdf(balance.dynamics)
-    noise = torch.full_like(prior.mass_scale, config.noise_floor)
-    theta = prior.flat()
+    starts = [prior.flat()]
     if config.residual == "step":
         start = replace(config, residual="torque")
-        floor = torch.full_like(noise, start.noise_floor)
-        theta = _solve(lambda t: objective(balance, prior, data, start, t, floor), theta, config)
+        floor = torch.full_like(prior.mass_scale, start.noise_floor)
+        estimate = _solve(
+            lambda t: objective(balance, prior, data, start, t, floor), prior.flat(), config
+        )
+        starts.insert(0, estimate)
+    for theta in starts:
+        found = _from(balance, prior, data, config, theta)
+        if physical(balance.dynamics, found):
+            return found
+    raise NumericalError(
+        "the identified arm cannot exist (a body's mass is not above zero) from any start"
+    )
+
+
+def physical(dynamics: ArmDynamics, params: ArmParameters) -> bool:
+    """Whether every body of the arm ``params`` makes of ``dynamics`` has a positive mass."""
+    return bool((identified_dynamics(dynamics, params).body.mass > 0).all())
+
+
+def _from(
+    balance: TorqueBalance,
+    prior: ArmParameters,
+    data: Transitions,
+    config: IdentifyConfig,
+    theta: Tensor,
+) -> ArmParameters:
+    """:func:`identify`'s MAP θ from the start ``theta``."""
+    noise = torch.full_like(prior.mass_scale, config.noise_floor)
 
     def solved(theta: Tensor, noise: Tensor) -> Tensor:
         return _solve(lambda t: objective(balance, prior, data, config, t, noise), theta, config)
