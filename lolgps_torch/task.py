@@ -27,7 +27,7 @@ from lolgps_torch.dynamics.identify import (
     identified_dynamics,
     identify,
 )
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.ik import solve_ik
 from lolgps_torch.robot.kinematics import PegKinematics
@@ -390,14 +390,15 @@ class PegTask:
         simulated = replace(self.arm, urdf_text=text)
         exact = ControlStep(simulated, self.config.world, self.device)
         if plant.gravity_compensation == "plant":  # the simulated body's own gravity
-            own = (exact.urdf, 1.0 + learner)
+            own = (exact.urdf, 1.0 + learner, 0.0)
             return ControlStep(simulated, self.config.world, self.device, own)
         kappa = float(plant.gravity_compensation == "model") + learner  # the URDF's
-        return ControlStep(self.arm, self.config.world, self.device, (exact.urdf, kappa))
+        return ControlStep(self.arm, self.config.world, self.device, (exact.urdf, kappa, 0.0))
 
     def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
         """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the
-        identified arm's (None, the model unchanged, before any transition). With a known
+        identified arm's (None, the model unchanged, before any transition, or with a warning
+        where no arm that can exist fits them). With a known
         delay (``WorldConfig.known_delay``) each physics step of a transition is driven by the
         command that :class:`ControlStep` has act there, from the state's action history; an
         arm late by a delay the learner does not know is identified as one whose commands act
@@ -411,8 +412,18 @@ class PegTask:
         balance = TorqueBalance(
             urdf, effort, world.dt, LINK_DAMPING, world.substeps, tuple(step.late)
         )
-        params = identify(balance, self._seen[0], config)
-        identified = (identified_dynamics(urdf, params), float(params.compensation))
+        try:
+            params = identify(balance, self._seen[0], config)
+        except NumericalError as error:  # the model as it was: planned and fitted with as before
+            warnings.warn(
+                f"the arm could not be identified ({error}); its model is kept", stacklevel=2
+            )
+            return None
+        identified = (
+            identified_dynamics(urdf, params),
+            float(params.compensation),
+            float(params.own),
+        )
         self._model = ControlStep(self.arm, self.config.world, self.device, identified)
         return params
 

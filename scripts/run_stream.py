@@ -272,7 +272,8 @@ def _record_line(record: IterationRecord | IdentifiedRecord | DistillRecord, tot
     if isinstance(record, IdentifiedRecord):
         return (
             f"condition {record.condition + 1}/{total}  arm identified: payload "
-            f"{record.payload:.3f} kg, gravity compensation x {record.compensation:.3f}; one-step "
+            f"{record.payload:.3f} kg, gravity compensation x {record.compensation:.3f} "
+            f"(its own gravity's share {record.own_compensation:.2f}); one-step "
             f"joint-speed error on its first rollouts {record.error_identified:.4f} rad/s "
             f"(URDF model {record.error_urdf:.4f}, the simulated arm's own "
             f"{record.error_plant:.4f}; {record.transitions} free transitions)"

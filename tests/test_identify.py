@@ -17,6 +17,7 @@ from lolgps_torch.dynamics.identify import (
     identified_dynamics,
     identify,
     objective,
+    physical,
 )
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
@@ -92,27 +93,46 @@ def _rollouts(
 
 
 def test_recovers_a_payload(arm: ArmSpec) -> None:
-    """1 kg on the peg, compensated by the URDF alone: identified within 5 %."""
+    """1 kg on the peg, compensated by the URDF alone: identified within 5 %, and the
+    compensation found to be the URDF's (ρ near 0)."""
     data, _ = _rollouts(arm, PlantConfig(payload=1.0, gravity_compensation="model"))
     found = identify(_balance(arm, WorldConfig()), data, IdentifyConfig())
     assert float(found.payload) == pytest.approx(1.0, rel=0.05)
     assert float(found.compensation) == pytest.approx(1.0, abs=0.02)
+    assert float(found.own) == pytest.approx(0.0, abs=0.1)
+
+
+def test_recovers_a_payload_the_arm_compensates_itself(arm: ArmSpec) -> None:
+    """1 kg on the peg, compensated by the arm's own gravity (the plant's, payload included):
+    its weight never shows, only its inertia, and it is still identified within 5 %, with the
+    compensation found to be the arm's own (ρ near 1) from 6 rollouts."""
+    data, _ = _rollouts(arm, PlantConfig(payload=1.0, gravity_compensation="plant"), 6)
+    found = identify(_balance(arm, WorldConfig()), data, IdentifyConfig())
+    assert float(found.payload) == pytest.approx(1.0, rel=0.05)
+    assert float(found.own) == pytest.approx(1.0, abs=0.1)
 
 
 @pytest.mark.parametrize(
-    ("residual", "within", "rollouts"),
-    [("torque", 0.05, 16), ("speed", 0.15, 16), ("step", 0.05, 6)],
+    ("residual", "within", "rollouts", "compensation"),
+    [
+        ("torque", 0.05, 16, "model"),
+        ("speed", 0.2, 16, "model"),
+        ("step", 0.05, 6, "model"),
+        ("step", 0.05, 6, "plant"),
+    ],
 )
-def test_recovers_link_masses(arm: ArmSpec, residual: str, within: float, rollouts: int) -> None:
+def test_recovers_link_masses(
+    arm: ArmSpec, residual: str, within: float, rollouts: int, compensation: str
+) -> None:
     """Link masses scaled by factors in [0.7, 1.3]: the elbow's and the wrist's bodies (links 3
     to 6, one link each) within 5 % by the torque balance and by the step residual (from 6
-    rollouts: its Jacobian costs 5 forward dynamics per parameter), 15 % by the midpoint speed
-    residual (its error of order dt^2 goes into the masses). The base link's mass moves no
+    rollouts: its Jacobian costs 5 forward dynamics per parameter), 20 % by the midpoint speed
+    residual (its error of order dt^2 goes into the masses and the compensation's share). The base link's mass moves no
     actuated joint and link 2's hardly changes the torques of these rollouts: both stay near
-    the prior."""
-    data, masses = _rollouts(
-        arm, PlantConfig(inertia_scale=0.3, seed=1, gravity_compensation="model"), rollouts
-    )
+    the prior. The same by the step residual where the arm compensates its own gravity, which
+    the URDF's scaled (κ g_URDF) cannot equal link by link."""
+    plant = PlantConfig(inertia_scale=0.3, seed=1, gravity_compensation=compensation)  # type: ignore[arg-type]
+    data, masses = _rollouts(arm, plant, rollouts)
     balance = _balance(arm, WorldConfig())
     config = IdentifyConfig(residual=residual)  # type: ignore[arg-type]
     found = identified_dynamics(balance.dynamics, identify(balance, data, config))
@@ -199,7 +219,7 @@ def test_a_delay_needs_the_past_commands(arm: ArmSpec) -> None:
 def test_the_step_residual_starts_from_the_torque_balances_estimate(arm: ArmSpec) -> None:
     """On the KUKA carrying 1 kg (6 rollouts), the step residual's Levenberg-Marquardt started
     from the midpoint form's estimate stalls in a local minimum with a negative payload, its
-    objective a thousand times the minimum's; started from the torque balance's estimate (what
+    objective over a hundred times the minimum's; started from the torque balance's estimate (what
     :func:`identify` does) it finds the payload within 2 %."""
     data, _ = _rollouts(arm, PlantConfig(payload=1.0, gravity_compensation="model"), rollouts=6)
     balance = _balance(arm, WorldConfig())
@@ -213,7 +233,7 @@ def test_the_step_residual_starts_from_the_torque_balances_estimate(arm: ArmSpec
     stalled = _solve(stacked, midpoint.flat(), config)
     found = identify(balance, data, config)
     assert float(prior.unflat(stalled).payload) < 0
-    assert float(stacked(found.flat()).square().sum()) < 1e-3 * float(
+    assert float(stacked(found.flat()).square().sum()) < 1e-2 * float(
         stacked(stalled).square().sum()
     )
     assert float(found.payload) == pytest.approx(1.0, rel=0.02)
@@ -293,3 +313,35 @@ def test_a_peg_lying_on_the_table_is_not_free() -> None:
     finally:
         task.close()
     assert free.tolist() == [[True, True], [False, False], [False, False]]
+
+
+def test_an_arm_that_cannot_exist_is_not_identified(arm: ArmSpec) -> None:
+    """A body of negative mass is not physical; the URDF's arm is."""
+    balance = _balance(arm, WorldConfig())
+    prior = ArmParameters.urdf(balance.dynamics)
+    assert physical(balance.dynamics, prior)
+    scale = prior.mass_scale.clone()
+    scale[3] = -0.5
+    assert not physical(balance.dynamics, replace(prior, mass_scale=scale))
+
+
+def test_a_failed_identification_keeps_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where no arm that can exist fits the transitions, the task warns and keeps its model."""
+    import lolgps_torch.task as task_module
+    from lolgps_torch.errors import NumericalError
+    from lolgps_torch.task import PegTask, TaskConfig
+
+    def fails(*_: object) -> ArmParameters:
+        raise NumericalError("no arm")
+
+    monkeypatch.setattr(task_module, "identify", fails)
+    task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
+    try:
+        data, _ = _rollouts(task.arm, PlantConfig(), rollouts=1)
+        task._seen = [data]
+        model = task.model
+        with pytest.warns(UserWarning, match="could not be identified"):
+            assert task.identify_model(IdentifyConfig()) is None
+        assert task.model is model
+    finally:
+        task.close()

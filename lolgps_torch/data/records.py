@@ -44,7 +44,8 @@ class IdentifiedRecord:
     """The arm identified at the start of a condition (``--identify``,
     :mod:`lolgps_torch.dynamics.identify`) and how well it predicts the condition's first
     rollouts, which the identification has not seen: the payload (kg) and its position in the
-    last body's frame (m), the gravity compensation's gain, the links' mass scales, and the
+    last body's frame (m), the gravity compensation's gain κ and the share ρ of it that is the
+    arm's own gravity rather than the URDF's, the links' mass scales, and the
     root-mean-square joint-velocity error (rad/s) of one control step predicted by the
     identified arm, by the URDF's and by the simulated arm's own (the model built from the
     true plant), over those rollouts' ``transitions`` free of contact."""
@@ -58,6 +59,7 @@ class IdentifiedRecord:
     error_urdf: float
     transitions: int
     error_plant: float = math.nan
+    own_compensation: float = math.nan
     event: Literal["identified"] = "identified"
 
     def to_json(self) -> dict[str, Any]:

@@ -4,9 +4,16 @@ The parameters θ (:class:`ArmParameters`) say how the arm differs from the URDF
 model: body k's mass, first moment and rotational inertia scaled by ``s_k`` (a denser or
 lighter link), a point payload of mass ``m_p`` at ``c_p`` in the last body's frame, viscous
 damping ``Δb`` added to the URDF's, Coulomb friction ``F``, and the gravity compensation the
-arm applies, ``c(q) = κ g_0(q)`` (g_0 the URDF's gravity torque: κ = 1 compensates the arm as
-its URDF describes it, 0 not at all; an arm that compensates its own payload shows as one
-whose payload weighs nothing and still has its inertia).
+arm applies,
+
+    ``c(q) = κ ((1 - ρ) g_0(q) + ρ g_θ(q))``
+
+with g_0 the URDF's gravity torque and g_θ the identified arm's own (its scaled bodies and its
+payload): a controller that compensates with the URDF's model has ρ = 0, one that compensates
+the arm as it really is (its own model, or a counterbalance) ρ = 1, and κ scales either (κ = 1
+compensates fully, 0 not at all). On the URDF's own arm g_θ = g_0 and ρ is not seen; a payload
+or links that differ from the URDF tell the two apart: with ρ = 0 the payload sags under its
+weight, with ρ = 1 it shows only through its inertia.
 
 A transition ``(q_0, qd_0) -> (q_1, qd_1)`` over the control step dt under the command u (held
 over the step) balances, at the midpoint ``qm = (q_0 + q_1) / 2``, ``qdm = (qd_0 + qd_1) / 2``
@@ -18,7 +25,8 @@ with the mean acceleration ``a = (qd_1 - qd_0) / dt``, the torque residual
 (ID_θ the recursive Newton-Euler inverse dynamics of the identified bodies, tau_link the
 generalised force of the simulator's link damping, b the URDF's joint damping). θ is the MAP
 estimate under Gaussian torque noise σ_τ and a Gaussian prior centred on the URDF
-(``s = 1``, ``m_p = 0``, ``c_p`` at the peg tip, ``Δb = F = 0``, ``κ = 1``):
+(``s = 1``, ``m_p = 0``, ``c_p`` at the peg tip, ``Δb = F = 0``, ``κ = 1``, and ``ρ = 1/2``
+with a wide σ, as the learner cannot know which compensation the arm has):
 
     ``min_θ  sum_t |r_t|^2 / σ_τ^2 + sum_i (θ_i - θ0_i)^2 / σ_i^2``
 
@@ -92,7 +100,7 @@ from typing import Literal, NamedTuple, get_args
 import torch
 from torch import Tensor
 
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.rigid_body import ArmDynamics, BodyParameters
 from lolgps_torch.state import StateLayout
 
@@ -120,6 +128,8 @@ class IdentifyConfig:
     :param damping_sd: prior standard deviation of the added damping (N m s/rad).
     :param friction_sd: prior standard deviation of the Coulomb friction (N m).
     :param compensation_sd: prior standard deviation of κ.
+    :param own_sd: prior standard deviation of ρ, the compensation's share that is the arm's
+        own gravity (centred on 1/2).
     :param friction_speed: v_F, the joint speed (rad/s) over which the friction's sign is
         smoothed.
     :param iterations: at most this many Levenberg-Marquardt steps.
@@ -136,6 +146,7 @@ class IdentifyConfig:
     damping_sd: float = 1.0
     friction_sd: float = 1.0
     compensation_sd: float = 0.02
+    own_sd: float = 0.5
     friction_speed: float = 0.01
     iterations: int = 30
     tolerance: float = 1e-9
@@ -167,7 +178,7 @@ class ArmParameters:
     :param mass_scale: s ``[n]``. :param payload: m_p ``[]`` (kg).
     :param payload_com: c_p ``[3]`` in the last body's frame (m).
     :param damping: Δb ``[n]``. :param friction: F ``[n]``.
-    :param compensation: κ ``[]``.
+    :param compensation: κ ``[]``. :param own: ρ ``[]``.
     """
 
     mass_scale: Tensor
@@ -176,23 +187,25 @@ class ArmParameters:
     damping: Tensor
     friction: Tensor
     compensation: Tensor
+    own: Tensor
 
     @staticmethod
     def urdf(dynamics: ArmDynamics) -> ArmParameters:
-        """The prior's centre: the URDF's arm, compensated by its URDF, a payload of 0 at the
-        peg tip."""
+        """The prior's centre: the URDF's arm, compensated fully (κ = 1, ρ = 1/2), a payload
+        of 0 at the peg tip."""
         n, like = dynamics.n, dynamics.body.mass
         q = like.new_zeros(n)
         frames = dynamics.frames(q)
         tip = dynamics.points(frames)[0]
         tip_in_last = frames.R[-1].T @ (tip - frames.p[-1])
         zeros = like.new_zeros(n)
+        one = like.new_ones(())
         return ArmParameters(
-            like.new_ones(n), like.new_zeros(()), tip_in_last, zeros, zeros, like.new_ones(())
+            like.new_ones(n), like.new_zeros(()), tip_in_last, zeros, zeros, one, one / 2
         )
 
     def flat(self) -> Tensor:
-        """θ as one vector ``[3n + 5]`` in field order."""
+        """θ as one vector ``[3n + 6]`` in field order."""
         return torch.cat([getattr(self, f.name).reshape(-1) for f in fields(self)])
 
     def unflat(self, theta: Tensor) -> ArmParameters:
@@ -213,6 +226,7 @@ class ArmParameters:
             "damping": config.damping_sd,
             "friction": config.friction_sd,
             "compensation": config.compensation_sd,
+            "own": config.own_sd,
         }
         return torch.cat(
             [torch.full_like(getattr(self, f.name).reshape(-1), sd[f.name]) for f in fields(self)]
@@ -285,9 +299,12 @@ class TorqueBalance(NamedTuple):
     substeps: int
     late: tuple[int, ...] = ()
 
-    def applied(self, params: ArmParameters, q: Tensor, u: Tensor) -> Tensor:
-        """``clip(u + κ g_0(q), -effort, effort)``."""
-        torque = u + params.compensation * self.dynamics.gravity_torque(q)
+    def applied(self, params: ArmParameters, q: Tensor, u: Tensor, own: Tensor) -> Tensor:
+        """``clip(u + c(q), -effort, effort)``, ``c(q) = κ ((1 - ρ) g_0(q) + ρ g_θ(q))`` with
+        ``own = g_θ(q)``."""
+        urdf = self.dynamics.gravity_torque(q)
+        gravity = urdf + params.own * (own - urdf)
+        torque = u + params.compensation * gravity
         return torch.minimum(torch.maximum(torque, -self.effort), self.effort)
 
     def schedule(self) -> tuple[int, ...]:
@@ -300,17 +317,21 @@ class TorqueBalance(NamedTuple):
             )
         return late
 
-    def held(self, params: ArmParameters, data: Transitions) -> dict[int, Tensor]:
+    def held(self, params: ArmParameters, data: Transitions, dyn: ArmDynamics) -> dict[int, Tensor]:
         """The torque each command that drives a physics step holds, by how many control
-        steps back it was issued: ``{j: clip(u_{t-j} + κ g_0(q_0), -effort, effort)}``
-        (``[B, n]`` each) for every j of :meth:`schedule`."""
+        steps back it was issued: ``{j: clip(u_{t-j} + c(q_0), -effort, effort)}``
+        (``[B, n]`` each) for every j of :meth:`schedule`; g_θ from ``dyn``, the identified
+        arm."""
         late = self.schedule()
         if max(late) >= data.commands.shape[1]:
             raise LolgpsError(
                 f"a command {max(late)} control steps back drives the step, but the "
                 f"transitions carry {data.commands.shape[1] - 1} past commands"
             )
-        return {j: self.applied(params, data.q0, data.commands[:, j]) for j in sorted(set(late))}
+        own = dyn.gravity_torque(data.q0)
+        return {
+            j: self.applied(params, data.q0, data.commands[:, j], own) for j in sorted(set(late))
+        }
 
     def residual(
         self, params: ArmParameters, data: Transitions, config: IdentifyConfig, noise: Tensor
@@ -318,7 +339,7 @@ class TorqueBalance(NamedTuple):
         """``r / σ: [B, n]``, the torque, speed or step residual as ``config.residual`` says
         (module docstring), with each joint's σ ``noise [n]``."""
         dyn = identified_dynamics(self.dynamics, params)
-        held, late = self.held(params, data), self.schedule()
+        held, late = self.held(params, data, dyn), self.schedule()
         if config.residual == "step":
             q, qd, h = data.q0, data.qd0, self.dt / self.substeps
             for j in late:
@@ -373,16 +394,43 @@ def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) 
     starts from the torque balance's estimate (solved once, each joint's σ the floor), whose
     residual is linear in the inertial parameters: from the prior, or from the midpoint form's
     estimate, its Gauss-Newton steps can stall in a local minimum with a negative payload
-    (``tests/test_identify.py``)."""
+    (``tests/test_identify.py``). Where that start leads to an arm that cannot exist (a body of
+    mass not above zero, :func:`physical`), the prior is the start instead; where that fails
+    too, :class:`NumericalError`."""
     if data.q0.shape[0] == 0:
         raise LolgpsError("identification needs at least one transition")
     prior = ArmParameters.urdf(balance.dynamics)
-    noise = torch.full_like(prior.mass_scale, config.noise_floor)
-    theta = prior.flat()
+    starts = [prior.flat()]
     if config.residual == "step":
         start = replace(config, residual="torque")
-        floor = torch.full_like(noise, start.noise_floor)
-        theta = _solve(lambda t: objective(balance, prior, data, start, t, floor), theta, config)
+        floor = torch.full_like(prior.mass_scale, start.noise_floor)
+        estimate = _solve(
+            lambda t: objective(balance, prior, data, start, t, floor), prior.flat(), config
+        )
+        starts.insert(0, estimate)
+    for theta in starts:
+        found = _from(balance, prior, data, config, theta)
+        if physical(balance.dynamics, found):
+            return found
+    raise NumericalError(
+        "the identified arm cannot exist (a body's mass is not above zero) from any start"
+    )
+
+
+def physical(dynamics: ArmDynamics, params: ArmParameters) -> bool:
+    """Whether every body of the arm ``params`` makes of ``dynamics`` has a positive mass."""
+    return bool((identified_dynamics(dynamics, params).body.mass > 0).all())
+
+
+def _from(
+    balance: TorqueBalance,
+    prior: ArmParameters,
+    data: Transitions,
+    config: IdentifyConfig,
+    theta: Tensor,
+) -> ArmParameters:
+    """:func:`identify`'s MAP θ from the start ``theta``."""
+    noise = torch.full_like(prior.mass_scale, config.noise_floor)
 
     def solved(theta: Tensor, noise: Tensor) -> Tensor:
         return _solve(lambda t: objective(balance, prior, data, config, t, noise), theta, config)

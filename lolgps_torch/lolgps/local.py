@@ -219,6 +219,7 @@ def identified_record(
         error_urdf=errors[1],
         error_plant=errors[2],
         transitions=errors[3],
+        own_compensation=float(params.own),
     )
 
 

@@ -89,7 +89,7 @@ def estimate_gravity(
     in a world of ``config`` with ``arm``, from the learner's model of the arm and the joints'
     effective inertias ``inertia: [n]``."""
     compensated = ControlStep(arm, config)
-    falling = ControlStep(arm, config, identified=(compensated.urdf, 0.0))
+    falling = ControlStep(arm, config, identified=(compensated.urdf, 0.0, 0.0))
     x = torch.from_numpy(states)
     before, after = x[:, :-1], x[:, 1:]
     u = torch.zeros(*before.shape[:-1], arm.dof, dtype=torch.float64)

@@ -2,7 +2,7 @@
 
 :meth:`PegWorld.step <lolgps_torch.sim.world.PegWorld.step>` holds the torque
 ``tau = clip(u + g(q_0), -effort, effort)`` (g the gravity compensation at the start of the
-step; for an identified arm, ``κ g_URDF``) for ``substeps`` physics steps of ``h = dt / substeps``. Each physics step of PyBullet's
+step; for an identified arm, ``κ ((1 - ρ) g_URDF + ρ g)``, g its own) for ``substeps`` physics steps of ``h = dt / substeps``. Each physics step of PyBullet's
 Featherstone solver is a semi-implicit Euler step,
 
     ``qd <- qd + h M(q)^{-1} (tau - b qd + tau_damp(q, qd) - c(q, qd) - g(q))``,
@@ -47,7 +47,8 @@ class ControlStep:
         damping margin).
     :param device: where the model's tensors live.
     :param identified: the arm as identified instead of its URDF: its rigid-body model (the
-        URDF's geometry) and κ, the gravity compensation ``κ g_URDF(q)`` it applies
+        URDF's geometry) and (κ, ρ) of the gravity compensation it applies,
+        ``κ ((1 - ρ) g_URDF(q) + ρ g(q))`` with g that model's own gravity torque
         (:mod:`lolgps_torch.dynamics.identify`); None: the URDF's, compensated exactly.
     """
 
@@ -56,7 +57,7 @@ class ControlStep:
         arm: ArmSpec,
         config: WorldConfig,
         device: torch.device | str = "cpu",
-        identified: tuple[ArmDynamics, float] | None = None,
+        identified: tuple[ArmDynamics, float, float] | None = None,
     ) -> None:
         self.config, self.layout = config, config.layout(arm.dof)
         self.h = config.dt / config.substeps
@@ -66,7 +67,7 @@ class ControlStep:
         self.urdf = ArmDynamics(
             arm, config.gravity, "pybullet", None, stabilising_inertia(plain, config), device
         )
-        self.dynamics, self.compensation = identified or (self.urdf, 1.0)
+        self.dynamics, self.compensation, self.own = identified or (self.urdf, 1.0, 0.0)
         self.effort = torch.tensor(arm.effort, dtype=torch.float64, device=self.dynamics.device)
 
     def __call__(self, x: Tensor, u: Tensor) -> Tensor:
@@ -162,7 +163,7 @@ class ControlStep:
         frames = dyn.frames(q)
         start = dyn.points(frames).flatten(-2)  # [..., 6]
         zeros = torch.zeros_like(q)
-        gravity = self.compensation * self.urdf.inverse_dynamics_at(frames, zeros, zeros)
+        gravity = self.compensation * self._gravity(frames, zeros)
         driving = sorted(set(self.late))
         tau = {
             j: torch.minimum(
@@ -174,6 +175,9 @@ class ControlStep:
             eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device).expand(*q.shape, -1)
             none = torch.zeros_like(eye)
             gravity_q = self.urdf.inverse_dynamics_derivatives(frames, zeros, zeros)[0]
+            if self.own:
+                own_q = dyn.inverse_dynamics_derivatives(frames, zeros, zeros)[0]
+                gravity_q = (1.0 - self.own) * gravity_q + self.own * own_q
             gravity_q = self.compensation * gravity_q
             n_commands = commands.shape[-2]
             d_tau = {}
@@ -209,6 +213,15 @@ class ControlStep:
         d_moved = self._point_jacobian(frames, end) @ d_q
         d_moved[..., : q.shape[-1]] -= d_start
         return q, qd, end - start, torch.cat([d_q, d_qd, d_moved], -2)
+
+    def _gravity(self, frames: Frames, zeros: Tensor) -> Tensor:
+        """The compensated gravity torque before κ: ``(1 - ρ) g_URDF(q) + ρ g(q)`` (the URDF's
+        alone, bit for bit, where ρ = 0)."""
+        urdf = self.urdf.inverse_dynamics_at(frames, zeros, zeros)
+        if not self.own:
+            return urdf
+        own = self.dynamics.inverse_dynamics_at(frames, zeros, zeros)
+        return (1.0 - self.own) * urdf + self.own * own
 
     def _point_jacobian(self, frames: Frames, points: Tensor) -> Tensor:
         """``dP/dq: [..., 6, n]`` of the points ``P: [..., 6]`` (tip, top) on the last body:

@@ -2,16 +2,18 @@
 
     python scripts/research/identify_noise.py [--urdf URDF] [--payload KG]
         [--obs-noise 0 0.001] [--noise-rounds 0 1] [--residual torque speed] [--iterations 3]
-        [--action-delay SECONDS [--detect-delay]] [--seed S]
+        [--action-delay SECONDS [--detect-delay]] [--gravity-compensation plant] [--seed S]
 
 For each sensor noise (rad; the joint velocities get 10 times as much) the arm carries
 ``--payload`` kg that its URDF lacks, compensated by the URDF's gravity alone
-(``--gravity-compensation model``). A condition's learner (the nominal hole) samples
+(``--gravity-compensation model``, the default here) or by its own, payload included
+(``plant``, the stream's default). A condition's learner (the nominal hole) samples
 ``--iterations`` batches of its first controller, planned on the arm's model, as the stream's
 first condition does; their free-space transitions identify the arm
 (:func:`lolgps_torch.dynamics.identify.identify`) once per ``--residual`` and
-``--noise-rounds`` value (``IdentifyConfig.residual``, ``IdentifyConfig.noise_rounds``). Each line gives the identified payload and gravity-
-compensation gain κ (truth: the payload and 1) and the one-step joint-speed error (rad/s) of
+``--noise-rounds`` value (``IdentifyConfig.residual``, ``IdentifyConfig.noise_rounds``).
+Each line gives the identified payload, the gravity compensation's gain κ and its own-gravity
+share ρ (truth: the payload, 1, and 0 for ``model`` or 1 for ``plant``) and the one-step joint-speed error (rad/s) of
 the identified model, of the URDF's and of the simulated arm's own
 (:meth:`lolgps_torch.task.PegTask.plant_model`) on a second condition's first rollouts (a hole
 0.04 m away), which the identification has not seen, and the identification's wall time.
@@ -58,6 +60,10 @@ def parse_args() -> argparse.Namespace:
         action="store_true",
         help="allow for the delay the stream estimates, not the true one",
     )
+    parser.add_argument(
+        "--gravity-compensation", choices=("model", "plant"), default="model",
+        help="the arm compensated by the URDF's gravity or by its own (%(default)s)",
+    )  # fmt: skip
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args()
 
@@ -65,13 +71,13 @@ def parse_args() -> argparse.Namespace:
 def main() -> None:
     args = parse_args()
     print(
-        "| sensor noise (rad) | delay allowed for (s) | residual | noise rounds | payload (kg) | κ | one-step error: identified / URDF / simulated arm's own (rad/s) | identification (s) |"
+        "| sensor noise (rad) | delay allowed for (s) | residual | noise rounds | payload (kg) | κ | ρ | one-step error: identified / URDF / simulated arm's own (rad/s) | identification (s) |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for noise in args.obs_noise:
         plant = PlantConfig(
             payload=args.payload,
-            gravity_compensation="model",
+            gravity_compensation=args.gravity_compensation,
             obs_noise=noise,
             action_delay=args.action_delay,
         )
@@ -99,7 +105,7 @@ def main() -> None:
                     identified, urdf, own, _ = task.one_step_errors(unseen)
                     print(
                         f"| {noise:g} | {delay:g} | {residual} | {rounds} | {float(found.payload):.3f} | "
-                        f"{float(found.compensation):.3f} | "
+                        f"{float(found.compensation):.3f} | {float(found.own):.2f} | "
                         f"{identified:.4f} / {urdf:.4f} / {own:.4f} | {seconds:.1f} |"
                     )
         finally:
