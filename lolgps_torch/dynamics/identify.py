@@ -25,9 +25,8 @@ with the mean acceleration ``a = (qd_1 - qd_0) / dt``, the torque residual
 (ID_θ the recursive Newton-Euler inverse dynamics of the identified bodies, tau_link the
 generalised force of the simulator's link damping, b the URDF's joint damping). θ is the MAP
 estimate under Gaussian torque noise σ_τ and a Gaussian prior centred on the URDF
-(``s = 1``, ``m_p = 0``, ``c_p`` at the peg tip, ``Δb = F = 0``, ``κ = 1``; ρ is held at 0
-and at 1 in two fits, as the learner cannot know which compensation the arm has, and the fit
-that explains the transitions better is kept):
+(``s = 1``, ``m_p = 0``, ``c_p`` at the peg tip, ``Δb = F = 0``, ``κ = 1``, and ``ρ = 1/2``
+with a wide σ, as the learner cannot know which compensation the arm has):
 
     ``min_θ  sum_t |r_t|^2 / σ_τ^2 + sum_i (θ_i - θ0_i)^2 / σ_i^2``
 
@@ -106,8 +105,6 @@ from lolgps_torch.robot.rigid_body import ArmDynamics, BodyParameters
 from lolgps_torch.state import StateLayout
 
 Residual = Literal["torque", "speed", "step"]
-COMPENSATIONS = (0.0, 1.0)  # ρ of the two compensations fitted: the URDF's, the arm's own
-HELD = 1e-9  # the prior's σ of ρ, which each fit holds at its compensation's
 
 
 @dataclass(frozen=True)
@@ -131,6 +128,8 @@ class IdentifyConfig:
     :param damping_sd: prior standard deviation of the added damping (N m s/rad).
     :param friction_sd: prior standard deviation of the Coulomb friction (N m).
     :param compensation_sd: prior standard deviation of κ.
+    :param own_sd: prior standard deviation of ρ, the compensation's share that is the arm's
+        own gravity (centred on 1/2).
     :param friction_speed: v_F, the joint speed (rad/s) over which the friction's sign is
         smoothed.
     :param iterations: at most this many Levenberg-Marquardt steps.
@@ -147,6 +146,7 @@ class IdentifyConfig:
     damping_sd: float = 1.0
     friction_sd: float = 1.0
     compensation_sd: float = 0.02
+    own_sd: float = 0.5
     friction_speed: float = 0.01
     iterations: int = 30
     tolerance: float = 1e-9
@@ -191,22 +191,17 @@ class ArmParameters:
 
     @staticmethod
     def urdf(dynamics: ArmDynamics) -> ArmParameters:
-        """The prior's centre: the URDF's arm, compensated fully by its URDF (κ = 1, ρ = 0), a
-        payload of 0 at the peg tip."""
+        """The prior's centre: the URDF's arm, compensated fully (κ = 1, ρ = 1/2), a payload
+        of 0 at the peg tip."""
         n, like = dynamics.n, dynamics.body.mass
         q = like.new_zeros(n)
         frames = dynamics.frames(q)
         tip = dynamics.points(frames)[0]
         tip_in_last = frames.R[-1].T @ (tip - frames.p[-1])
         zeros = like.new_zeros(n)
+        one = like.new_ones(())
         return ArmParameters(
-            like.new_ones(n),
-            like.new_zeros(()),
-            tip_in_last,
-            zeros,
-            zeros,
-            like.new_ones(()),
-            like.new_zeros(()),
+            like.new_ones(n), like.new_zeros(()), tip_in_last, zeros, zeros, one, one / 2
         )
 
     def flat(self) -> Tensor:
@@ -231,7 +226,7 @@ class ArmParameters:
             "damping": config.damping_sd,
             "friction": config.friction_sd,
             "compensation": config.compensation_sd,
-            "own": HELD,
+            "own": config.own_sd,
         }
         return torch.cat(
             [torch.full_like(getattr(self, f.name).reshape(-1), sd[f.name]) for f in fields(self)]
@@ -400,33 +395,11 @@ def identify(balance: TorqueBalance, data: Transitions, config: IdentifyConfig) 
     residual is linear in the inertial parameters: from the prior, or from the midpoint form's
     estimate, its Gauss-Newton steps can stall in a local minimum with a negative payload
     (``tests/test_identify.py``). Where that start leads to an arm that cannot exist (a body of
-    mass not above zero, :func:`physical`), the prior is the start instead. The arm is fitted
-    once per compensation, ρ held at 0 (the URDF's) and at 1 (its own), and the fit whose
-    residuals (each joint's σ the floor) are smaller is kept; where neither arm can exist,
-    :class:`NumericalError`."""
+    mass not above zero, :func:`physical`), the prior is the start instead; where that fails
+    too, :class:`NumericalError`."""
     if data.q0.shape[0] == 0:
         raise LolgpsError("identification needs at least one transition")
-    found = [_hypothesis(balance, data, config, own) for own in COMPENSATIONS]
-    floor = torch.full_like(found[0].mass_scale, config.noise_floor)
-    fits = [
-        (float(balance.residual(params, data, config, floor).square().sum()), k)
-        for k, params in enumerate(found)
-        if physical(balance.dynamics, params)
-    ]
-    if not fits:
-        raise NumericalError(
-            "the identified arm cannot exist (a body's mass is not above zero) from any start"
-        )
-    return found[min(fits)[1]]
-
-
-def _hypothesis(
-    balance: TorqueBalance, data: Transitions, config: IdentifyConfig, own: float
-) -> ArmParameters:
-    """:func:`identify`'s MAP θ with ρ held at ``own``: from the torque balance's estimate
-    (the step residual), or the prior where that gives an arm that cannot exist."""
-    urdf = ArmParameters.urdf(balance.dynamics)
-    prior = replace(urdf, own=torch.full_like(urdf.own, own))
+    prior = ArmParameters.urdf(balance.dynamics)
     starts = [prior.flat()]
     if config.residual == "step":
         start = replace(config, residual="torque")
@@ -438,8 +411,10 @@ def _hypothesis(
     for theta in starts:
         found = _from(balance, prior, data, config, theta)
         if physical(balance.dynamics, found):
-            break
-    return found
+            return found
+    raise NumericalError(
+        "the identified arm cannot exist (a body's mass is not above zero) from any start"
+    )
 
 
 def physical(dynamics: ArmDynamics, params: ArmParameters) -> bool:
