@@ -112,6 +112,27 @@ def test_recovers_a_payload_the_arm_compensates_itself(arm: ArmSpec) -> None:
     assert float(found.own) == pytest.approx(1.0, abs=0.1)
 
 
+def test_the_compensations_share_stays_between_the_two_models(
+    arm: ArmSpec, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """ρ mixes the URDF's compensation and the arm's own, so a fit ending outside [0, 1] is
+    solved again with ρ held at the nearer end: with the prior's centre moved to ρ = 3 (and
+    held there tightly) the free fit ends far beyond 1; held at 1, the arm compensating its
+    own 1 kg payload is still identified within 5 %."""
+    urdf = ArmParameters.urdf
+    monkeypatch.setattr(
+        ArmParameters,
+        "urdf",
+        staticmethod(lambda dynamics: replace(urdf(dynamics), own=torch.tensor(3.0))),
+    )
+    data, _ = _rollouts(arm, PlantConfig(payload=1.0, gravity_compensation="plant"), 6)
+    found = identify(
+        _balance(arm, WorldConfig()), data, IdentifyConfig(own_sd=0.01, noise_rounds=0)
+    )
+    assert float(found.own) == 1.0
+    assert float(found.payload) == pytest.approx(1.0, rel=0.05)
+
+
 @pytest.mark.parametrize(
     ("residual", "within", "rollouts", "compensation"),
     [
