@@ -26,6 +26,7 @@ from lolgps_torch.dynamics.identify import (
     Transitions,
     identified_dynamics,
     identify,
+    misfit,
 )
 from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.arm import load_arm
@@ -314,6 +315,7 @@ class PegTask:
         self._model: ControlStep | None = None
         self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
         self._seen: list[Transitions] = []  # free-space transitions kept for identification
+        self._identified: ArmParameters | None = None  # the arm identified last
 
     @property
     def model(self) -> ControlStep:
@@ -412,13 +414,23 @@ class PegTask:
         balance = TorqueBalance(
             urdf, effort, world.dt, LINK_DAMPING, world.substeps, tuple(step.late)
         )
+        data, before = self._seen[0], self._identified
         try:
-            params = identify(balance, self._seen[0], config)
+            params = identify(balance, data, config, before)
         except NumericalError as error:  # the model as it was: planned and fitted with as before
             warnings.warn(
                 f"the arm could not be identified ({error}); its model is kept", stacklevel=2
             )
             return None
+        kept = before or ArmParameters.urdf(urdf)
+        if misfit(balance, params, data, config) > misfit(balance, kept, data, config):
+            warnings.warn(
+                "the identified arm explains the transitions worse than the model it would "
+                "replace; that model is kept",
+                stacklevel=2,
+            )
+            return None
+        self._identified = params
         identified = (
             identified_dynamics(urdf, params),
             float(params.compensation),

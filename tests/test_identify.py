@@ -368,3 +368,41 @@ def test_a_failed_identification_keeps_the_model(monkeypatch: pytest.MonkeyPatch
         assert task.model is model
     finally:
         task.close()
+
+
+def test_an_identification_worse_than_the_model_it_would_replace_is_not_taken(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """An identified arm that explains the transitions worse than the task's model (here a
+    7 kg payload on the URDF's own arm) is refused with a warning; the next identification
+    starts from the arm identified before."""
+    import lolgps_torch.task as task_module
+    from lolgps_torch.task import PegTask, TaskConfig
+
+    starts: list[ArmParameters | None] = []
+
+    def heavy(
+        balance: TorqueBalance, data: Transitions, config: IdentifyConfig, start: object
+    ) -> ArmParameters:
+        starts.append(start)  # type: ignore[arg-type]
+        prior = ArmParameters.urdf(balance.dynamics)
+        return replace(prior, payload=torch.tensor(7.0, dtype=torch.float64))
+
+    task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
+    try:
+        data, _ = _rollouts(task.arm, PlantConfig(), rollouts=1)
+        task._seen = [data]
+        model = task.model
+        monkeypatch.setattr(task_module, "identify", heavy)
+        with pytest.warns(UserWarning, match="worse than the model it would replace"):
+            assert task.identify_model(IdentifyConfig(noise_rounds=0)) is None
+        assert task.model is model
+        monkeypatch.setattr(task_module, "identify", identify)
+        found = task.identify_model(IdentifyConfig(noise_rounds=0))
+        assert found is not None and task.model is not model
+        monkeypatch.setattr(task_module, "identify", heavy)
+        with pytest.warns(UserWarning, match="worse than the model it would replace"):
+            task.identify_model(IdentifyConfig(noise_rounds=0))
+        assert starts == [None, found]
+    finally:
+        task.close()
