@@ -13,14 +13,9 @@ payload): a controller that compensates with the URDF's model has ρ = 0, one th
 the arm as it really is (its own model, or a counterbalance) ρ = 1, and κ scales either (κ = 1
 compensates fully, 0 not at all). On the URDF's own arm g_θ = g_0 and ρ is not seen; a payload
 or links that differ from the URDF tell the two apart: with ρ = 0 the payload sags under its
-weight, with ρ = 1 it shows only through its inertia.
-
-θ is kept to an arm that can exist: ρ within [0, 1] (a mix of the two compensations), each
-joint's damping ``b + Δb`` and friction F not negative (:meth:`ArmParameters.bounds`; the
-solver's steps are projected onto these bounds). Unbounded, the Panda's 1.5 kg compensated by
-the URDF with its commands 50 ms late came out as 0.73 kg with ρ = 1.79 (bounded: 1.42 kg,
-ρ = 0), and 0.5 kg that the Panda compensates itself, seen in 254 transitions, as 0.42 kg with
-negative damping and friction on several joints.
+weight, with ρ = 1 it shows only through its inertia. ρ stays within [0, 1]: a fit that ends
+outside is solved again with ρ held at the nearer end (free, the Panda's 1.5 kg compensated by
+the URDF, its commands 50 ms late, came out as 0.73 kg with ρ = 1.79; held, 1.42 kg with ρ = 0).
 
 A transition ``(q_0, qd_0) -> (q_1, qd_1)`` over the control step dt under the command u (held
 over the step) balances, at the midpoint ``qm = (q_0 + q_1) / 2``, ``qdm = (qd_0 + qd_1) / 2``
@@ -223,22 +218,6 @@ class ArmParameters:
             parts[f.name] = theta[start : start + like.numel()].reshape(like.shape)
             start += like.numel()
         return ArmParameters(**parts)
-
-    def bounds(self, dynamics: ArmDynamics) -> tuple[Tensor, Tensor]:
-        """The least and the largest value of each entry of :meth:`flat` for an arm that can
-        exist: a joint's damping b + Δb and its friction F not negative, and the
-        compensation's own share ρ within [0, 1], a mix of the two compensations (the other
-        entries unbounded here; :func:`physical` checks the bodies' masses)."""
-        inf = torch.full_like(self.flat(), math.inf)
-        lower = self.unflat(-inf)
-        lower = replace(
-            lower,
-            damping=-dynamics.joint_damping.to(inf),
-            friction=torch.zeros_like(self.friction),
-            own=torch.zeros_like(self.own),
-        )
-        upper = replace(self.unflat(inf.clone()), own=torch.ones_like(self.own))
-        return lower.flat(), upper.flat()
 
     def prior_sd(self, config: IdentifyConfig) -> Tensor:
         """The prior's standard deviation per entry of :meth:`flat`."""
@@ -471,15 +450,21 @@ def _from(
     config: IdentifyConfig,
     theta: Tensor,
 ) -> ArmParameters:
-    """:func:`identify`'s MAP θ from the start ``theta``, within the bounds of an arm that can
-    exist (:meth:`ArmParameters.bounds`)."""
+    """:func:`identify`'s MAP θ from the start ``theta``."""
     noise = torch.full_like(prior.mass_scale, config.noise_floor)
-    bounds = prior.bounds(balance.dynamics)
 
     def solved(theta: Tensor, noise: Tensor) -> Tensor:
-        return _solve(
-            lambda t: objective(balance, prior, data, config, t, noise), theta, config, bounds
+        theta = _solve(lambda t: objective(balance, prior, data, config, t, noise), theta, config)
+        own = theta[-1]  # ρ, the last entry of ArmParameters.flat
+        if 0.0 <= float(own) <= 1.0:
+            return theta
+        held = own.clamp(0.0, 1.0).reshape(1)
+        rest = _solve(
+            lambda t: objective(balance, prior, data, config, torch.cat([t, held]), noise),
+            theta[:-1],
+            config,
         )
+        return torch.cat([rest, held])
 
     theta = solved(theta, noise)
     for _ in range(config.noise_rounds):
@@ -492,20 +477,11 @@ def _from(
     return prior.unflat(theta)
 
 
-def _solve(
-    stacked: Callable[[Tensor], Tensor],
-    theta: Tensor,
-    config: IdentifyConfig,
-    bounds: tuple[Tensor, Tensor] | None = None,
-) -> Tensor:
+def _solve(stacked: Callable[[Tensor], Tensor], theta: Tensor, config: IdentifyConfig) -> Tensor:
     """Levenberg-Marquardt on the stacked residuals ``stacked(θ)`` from ``theta``: Gauss-Newton
     steps ``(J^T J + λ diag(J^T J)) δ = -J^T R``, λ raised tenfold until a step lowers
     ``|R|^2`` and lowered tenfold after it; at most ``config.iterations`` steps, ending once
-    one gains less than ``config.tolerance`` of the objective. Within ``bounds`` (lower,
-    upper; None: none), projected: an entry at a bound that the gradient pushes beyond it is
-    held there for the step, the others step, and the result is clipped to the bounds."""
-    lower, upper = bounds or (torch.full_like(theta, -math.inf), torch.full_like(theta, math.inf))
-    theta = theta.clamp(lower, upper)
+    one gains less than ``config.tolerance`` of the objective."""
     damping = 1e-3
     residual = stacked(theta)
     cost = float(residual.square().sum())
@@ -514,14 +490,10 @@ def _solve(
             stacked, theta, vectorize=True, strategy="forward-mode"
         )
         H, g = J.T @ J, J.T @ residual
-        free = ~(((theta <= lower) & (g > 0)) | ((theta >= upper) & (g < 0)))
-        H, g = H[free][:, free], g[free]
         scale = torch.diagonal(H).clamp_min(1e-12)
         while True:
-            step = torch.zeros_like(theta)
-            step[free] = torch.linalg.solve(H + damping * torch.diag(scale), -g)
-            moved = (theta + step).clamp(lower, upper)
-            trial = stacked(moved)
+            step = torch.linalg.solve(H + damping * torch.diag(scale), -g)
+            trial = stacked(theta + step)
             trial_cost = float(trial.square().sum())
             if trial_cost <= cost or damping > 1e12:
                 break
@@ -529,7 +501,7 @@ def _solve(
         if trial_cost > cost:
             break
         gain = (cost - trial_cost) / max(cost, 1e-300)
-        theta, residual, cost = moved, trial, trial_cost
+        theta, residual, cost = theta + step, trial, trial_cost
         damping = max(damping / 10.0, 1e-9)
         if gain < config.tolerance:
             break
