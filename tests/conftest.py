@@ -23,6 +23,7 @@ import json
 import multiprocessing
 import runpy
 import sys
+import warnings
 from collections.abc import Callable
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -180,7 +181,9 @@ class ScriptRun(NamedTuple):
 def run_script(capfd: pytest.CaptureFixture[str]) -> Callable[..., ScriptRun]:
     """``run_script(path, *args)`` runs ``python path ARGS`` (``path`` relative to the
     repository) in this process, where the imports a new process would spend seconds on are
-    already done, and reports what the file descriptors 1 and 2 received."""
+    already done, and reports what the file descriptors 1 and 2 received. Each warning is
+    shown once per run, as in a new process, however often earlier tests in this process
+    raised it."""
 
     def run(path: str, *args: str) -> ScriptRun:
         script = str(ROOT / path)
@@ -188,7 +191,9 @@ def run_script(capfd: pytest.CaptureFixture[str]) -> Callable[..., ScriptRun]:
         argv = sys.argv
         sys.argv = [script, *args]
         try:
-            runpy.run_path(script, run_name="__main__")
+            with warnings.catch_warnings():  # new filters: the warnings already shown forgotten
+                warnings.simplefilter("default")
+                runpy.run_path(script, run_name="__main__")
             code = 0
         except SystemExit as exit_:
             code = exit_.code if isinstance(exit_.code, int) else int(exit_.code is not None)
