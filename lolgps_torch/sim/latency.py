@@ -8,8 +8,7 @@ The commands come from their own generator (``DelayConfig.seed``), so the learne
 streams are untouched. The rollouts are short, so that the arm stays near q0, where the fit
 below is linear, also when the compensation misses a load: with 8 rollouts of 40 steps a
 payload of 0.5 kg that the URDF lacks, compensated by the URDF alone, sagged the arm far enough
-to hide any delay (60 of 160 plants missed on the Panda, 72 on the KUKA, against none with 64
-of 5; ``scripts/research/delay_estimate.py``).
+to hide any delay (``scripts/research/delay_estimate.py``, ``docs/RESULTS.md`` section 8).
 
 Fit: a delay of ``d = k H + r`` physics steps (``H`` per control step, ``0 <= r < H``) lets
 command ``u_{t-k}`` act for the last ``H - r`` physics steps of control step t and
@@ -19,12 +18,18 @@ command ``u_{t-k}`` act for the last ``H - r`` physics steps of control step t a
 
 For every candidate d in 0..D the least-squares fit
 
-    qd_{t+1} - qd_t = B v_t(d) + A [q_t, qd_t, 1]       (B, A free matrices)
+    qd_{t+1} - qd_t = B v_t(d) + A [s_t, 1]       (B, A free matrices)
 
 leaves a residual sum of squares RSS(d); the estimate is the d with the smallest one, unless
 every RSS(d) lies within :data:`EXPLAINED` times the smallest: then the commands explain the
 speeds equally badly at every delay (an arm whose response the excitation does not show), and
 the estimate is no delay.
+
+The state ``s_t`` is not the observed ``[q_t, qd_t]``, whose sensor noise also enters
+``qd_{t+1} - qd_t`` and biased the estimate a physics step late (the KUKA with 1 mrad: 10 ms
+where there was none). It is its least-squares prediction from what decides it without noise,
+the step t and every earlier command ``u_0 .. u_{t-1}`` of the rollout (an instrumental
+variable: all rollouts start at rest at q0).
 """
 
 from __future__ import annotations
@@ -57,7 +62,7 @@ class DelayConfig:
     :param seed: seed of the excitation's commands.
     """
 
-    rollouts: int = 64
+    rollouts: int = 128
     steps: int = 5
     speed: float = 0.05
     longest: float = 0.1
@@ -121,14 +126,27 @@ def impulse(u: np.ndarray, delay: int, substeps: int) -> np.ndarray:
     return ((substeps - r) * current + r * earlier) / substeps
 
 
+def predicted_state(data: Excitation) -> np.ndarray:
+    """``s_t`` of the module docstring, ``[R * S, 2n]``: the observed ``[q_t, qd_t]`` fitted by
+    least squares on the step t (one indicator per step) and the rollout's earlier commands
+    ``u_{t-1}, ..., u_0`` (zero before the first)."""
+    R, S, n = data.u.shape
+    earlier = [
+        np.concatenate([np.zeros((R, lag, n)), data.u[:, : S - lag]], 1) for lag in range(1, S)
+    ]
+    step = np.broadcast_to(np.eye(S), (R, S, S))
+    instruments = np.concatenate([step, *earlier], -1).reshape(R * S, -1)
+    observed = np.concatenate([data.q[:, :-1], data.qd[:, :-1]], -1).reshape(R * S, -1)
+    coef = np.linalg.lstsq(instruments, observed, rcond=None)[0]
+    return instruments @ coef
+
+
 def estimate_delay(data: Excitation, dt: float, substeps: int, longest: float) -> DelayEstimate:
     """The delay of the smallest residual of the fits of the module docstring, among 0..D
     physics steps of ``dt / substeps`` (D = ``longest`` in whole physics steps, rounded down);
     none where every residual is within :data:`EXPLAINED` times the smallest."""
     dqd = (data.qd[:, 1:] - data.qd[:, :-1]).reshape(-1, data.u.shape[-1])
-    state = np.concatenate(
-        [data.q[:, :-1], data.qd[:, :-1], np.ones(data.q[:, :-1].shape[:-1] + (1,))], -1
-    ).reshape(dqd.shape[0], -1)
+    state = np.concatenate([predicted_state(data), np.ones((dqd.shape[0], 1))], -1)
     physics_step = dt / substeps
     candidates = range(int(math.floor(longest / physics_step + 1e-9)) + 1)
     rss = []
