@@ -50,7 +50,6 @@ def test_impulse_splits_a_command_between_two_control_steps() -> None:
         PlantConfig(action_delay=0.05),
         PlantConfig(action_delay=0.07),
         PlantConfig(action_delay=0.02, obs_noise=0.001),
-
         PlantConfig(payload=1.0, gravity_compensation="model", inertia_scale=0.3),
         PlantConfig(payload=2.0, gravity_compensation="model", action_delay=0.05),
         PlantConfig(payload=0.5, gravity_compensation="model", action_delay=0.02),
