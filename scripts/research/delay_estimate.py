@@ -4,16 +4,16 @@ true delay, for each arm, delay, sensor noise, payload and gravity compensation 
     python scripts/research/delay_estimate.py --urdf robots/kuka_peg.urdf \\
         --delays 0 0.01 0.025 0.04 0.05 0.06 0.075 0.1 --obs-noise 0 0.001 \\
         --payloads 0 0.5 1 2 --gravity-compensation plant model --seeds 0 1 \\
-        [--rollouts 64 --steps 5]
+        [--rollouts 8 --steps 40] [--speed 0.05]
 
 Prints one line per plant: the true and estimated delay (physics steps and s), how much larger
 the residual of the next best candidate's fit is (the margin, ``lolgps_torch/sim/latency.py``),
 and that of the fit with no delay (how badly a model that takes each command at once explains
 the arm); then how many estimates are right: the plant's delay in whole physics steps, or
-either whole step around a delay between two. ``--seeds`` sets
-both the plant's seed (its sensor noise) and the excitation's; ``--rollouts`` and ``--steps``
-the excitation, ``--speed`` its size (default: the learner's, ``DelayConfig``). The plant is read here only to set the
-simulated arm.
+either whole step around a delay between two. ``--seeds`` sets both the plant's seed (its
+sensor noise) and the excitation's; ``--rollouts`` and ``--steps`` shape the excitation and
+``--speed`` sizes it (default: the learner's, ``DelayConfig``). The plant is read here only to
+set the simulated arm.
 """
 
 from __future__ import annotations

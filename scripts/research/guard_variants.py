@@ -19,10 +19,7 @@ trip has none); with either, ``--torque T`` is fitted to the replay too, T times
 teacher torque (a run trained without a bound has none to rescale). ``--brake B`` has the brake take B of the joint speeds away per control
 step instead of the run's share (default: the run's). The policies themselves are the runs' own, so
 only acting (by this checkout's guard) changes; compare with
-``scripts/research/seed_table.py RUNS DIR --label trained variant``. A run trained without a
-guard (``--no-guard``) is given the default guard (:class:`PolicyConfig`'s margins) fitted to
-its replay, then the changes asked for: its policies acted unguarded while they learnt, and
-guarded when tested.
+``scripts/research/seed_table.py RUNS DIR --label trained variant``.
 """
 
 from __future__ import annotations
@@ -31,7 +28,6 @@ import argparse
 import json
 import math
 import shutil
-from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -126,24 +122,17 @@ def reguarded(
 def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None:
     """The run ``source`` copied to ``target`` (no replay, no evaluation), guards re-set."""
     trained = json.loads((source / "config.json").read_text())["stream"]["policy"]
-    unguarded = not trained.get("guard", False)
-    if unguarded:  # the default guard, fitted to the replay below
-        trained = asdict(PolicyConfig())
+    if not trained.get("guard", False):
+        raise LolgpsError(f"{source}: its policies were trained without a guard")
     shutil.rmtree(target, ignore_errors=True)
     shutil.copytree(source, target, ignore=shutil.ignore_patterns(REPLAY_FILE, EVAL_FILE, "*.png"))
-    refit = unguarded or args.window is not None or args.retreat is not None
+    refit = args.window is not None or args.retreat is not None
     records = load_run(source).records if refit else []
     for checkpoint in sorted((target / "checkpoints").iterdir()):
         policy = load_policy(checkpoint)
         last = int(checkpoint.name.rsplit("_", 1)[-1]) if records else -1
         data = [r.samples for r in records if r.condition <= last]
-        guard = policy.guard
-        if unguarded:
-            fitted = guard_of(data, StateLayout(guard.torque.shape[0]), PolicyConfig())
-            if fitted is None:
-                raise LolgpsError(f"{checkpoint}: its conditions hold no rollout to fit a guard")
-            guard = fitted
-        policy.set_guard(reguarded(guard, trained, args, data))
+        policy.set_guard(reguarded(policy.guard, trained, args, data))
         save_policy(checkpoint, policy)
     print(f"{target}: the last policy's retreat trip rho {float(policy.guard.retreat):.4f} m")
 
