@@ -405,7 +405,7 @@ def identify(
     mass not above zero, :func:`physical`), the prior is the start instead; where that fails
     too, :class:`NumericalError`. Given ``start`` (the arm identified before, from earlier
     transitions of the same arm) the solution starts there instead of at the torque balance's
-    estimate: from that estimate, a second identification of the Panda carrying 2 kg found
+    estimate: from that estimate, a second identification of the Panda carrying 2 kg once found
     7.3 kg where the first had found 2.02 kg."""
     if data.q0.shape[0] == 0:
         raise LolgpsError("identification needs at least one transition")
