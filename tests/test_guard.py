@@ -18,6 +18,8 @@ from lolgps_torch.state import StateLayout
 from lolgps_torch.task import PegTask, TaskConfig
 
 F64 = torch.float64
+NO_HOVER = torch.full((2,), torch.nan, dtype=F64)
+STILL = torch.zeros(4, dtype=torch.bool)  # no rollout steered to its hover point yet
 ROOT = Path(__file__).resolve().parents[1]
 LAYOUT = StateLayout(2)
 
@@ -68,6 +70,59 @@ def test_the_brake_takes_its_share_of_the_speeds_away_on_the_arm() -> None:
         task.close()
 
 
+def test_the_hover_brake_steers_the_peg_above_a_far_hole_in_pybullet() -> None:
+    """Braking with the hover (h, tau) from the start pose, every step, in PyBullet's world:
+    both peg points come to rest within 2 cm of their targets raised by h, at a hole 0.25 m
+    aside, where the plain brake leaves the arm at the start pose."""
+    task = PegTask(TaskConfig(str(ROOT / "robots" / "kuka_peg.urdf")), n_worlds=2)
+    try:
+        lay, hover = task.layout, torch.tensor([0.15, 0.5], dtype=F64)
+        raised = torch.zeros(6, dtype=F64)
+        raised[2::3] = 0.15
+
+        def steer(t: int, x: torch.Tensor, rows: slice) -> torch.Tensor:
+            return -0.5 * task.model.stopping(x, hover)
+
+        x, _, _ = task.sampler.rollout(steer, [(0.0, 0.25), (-0.05, 0.1)])
+        start = (x[:, 0, lay.points] - raised).norm(dim=-1)
+        end = (x[:, -1, lay.points] - raised).norm(dim=-1)
+        assert (start > 0.2).all() and (end < 0.02).all()
+        assert (x[:, -1, lay.qd].abs() < 0.05).all()  # at rest
+    finally:
+        task.close()
+
+
+def test_a_steered_rollout_brakes_until_it_reaches_its_hover_point() -> None:
+    """With the hover, a row that tripped goes on braking (steered) after the bound is no
+    longer passed, until its tip is within 2 cm of the point h above its target; then the
+    policy acts again. Without the hover nothing is remembered."""
+    hover = torch.tensor([0.1, 1.0], dtype=F64)
+    guard = Guard(
+        torch.full((2,), torch.inf, dtype=F64), torch.tensor([[1.0, 1.0]], dtype=F64),
+        torch.tensor(1.0, dtype=F64), torch.tensor(torch.inf, dtype=F64), hover,
+    )  # fmt: skip
+    u = torch.full((4, 2), 0.5, dtype=F64)
+    calls = []
+
+    def stopping(x: torch.Tensor, hover: torch.Tensor | None = None) -> torch.Tensor:
+        calls.append(hover)
+        return torch.ones(x.shape[0], 2, dtype=F64)
+
+    # row 0 trips by speed; row 1 is steered and far from its hover point; row 2 is steered
+    # and within 2 cm of it (0.115 m above the target); row 3 neither
+    x = _states([[2.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]], [0.3, 0.3, 0.115, 0.3])
+    steering = torch.tensor([False, True, True, False])
+    out, _, after = guarded(u, x, LAYOUT, torch.full((4,), torch.inf, dtype=F64), steering,
+                            guard, 0, stopping)  # fmt: skip
+    assert after.tolist() == [True, True, False, False]
+    assert out.tolist() == [[-1.0, -1.0], [-1.0, -1.0], [0.5, 0.5], [0.5, 0.5]]
+    assert calls and torch.equal(calls[0], hover)
+    plain = guard._replace(hover=NO_HOVER)
+    out, _, after = guarded(u, x, LAYOUT, torch.full((4,), torch.inf, dtype=F64), steering,
+                            plain, 0, _speeds)  # fmt: skip
+    assert torch.equal(after, steering) and torch.equal(out[1:], u[1:])
+
+
 def _states(qd: list[list[float]], distance: list[float]) -> torch.Tensor:
     """States with joint speeds ``qd`` and the tip ``distance`` (m) from its target along z."""
     x = torch.zeros(len(qd), LAYOUT.dX, dtype=F64)
@@ -87,26 +142,27 @@ def test_the_guard_bounds_torques_and_brakes_while_a_bound_is_passed() -> None:
         torch.tensor([[1.0, 1.0]], dtype=F64),
         torch.tensor(1.0, dtype=F64),
         torch.tensor(0.1, dtype=F64),
+        torch.full((2,), torch.nan, dtype=F64),
     )
     u = torch.tensor([[5.0, -5.0], [0.5, 0.5], [0.5, 0.5], [0.5, 0.5]], dtype=F64)
     x = _states([[0.0, 0.0], [0.5, 1.5], [0.5, 0.5], [0.5, 0.5]], [0.3, 0.3, 0.3, 0.3])
     closest = torch.tensor([torch.inf, torch.inf, 0.15, 0.25], dtype=F64)
-    out, nearest = guarded(u, x, LAYOUT, closest, guard, 0, _speeds)
+    out, nearest, _ = guarded(u, x, LAYOUT, closest, STILL, guard, 0, _speeds)
     # row 0 is clipped; row 1 passes a speed; row 2 has retreated 0.15 m > 0.1 m; row 3 0.05 m
     assert out.tolist() == [[1.0, -2.0], [-0.5, -1.5], [-0.5, -0.5], [0.5, 0.5]]
     assert nearest.tolist() == [0.3, 0.3, 0.15, 0.25]
     # nothing is latched: a slow state near its closest approach acts again
     slow = _states([[0.5, 0.5]] * 4, [0.2] * 4)
-    assert torch.equal(guarded(u, slow, LAYOUT, nearest, guard, 1, _speeds)[0][1:], u[1:])
+    assert torch.equal(guarded(u, slow, LAYOUT, nearest, STILL, guard, 1, _speeds)[0][1:], u[1:])
     off = Guard.off(2)
-    assert torch.equal(guarded(u, x, LAYOUT, closest, off, 0, _speeds)[0], u)
+    assert torch.equal(guarded(u, x, LAYOUT, closest, STILL, off, 0, _speeds)[0], u)
     # per-step trip speeds: the same speeds pass at step 0 and brake at step 1
     stepped = guard._replace(speed=torch.tensor([[2.0, 2.0], [1.0, 1.0]], dtype=F64))
     fresh = torch.full((4,), torch.inf, dtype=F64)
-    assert torch.equal(guarded(u, x, LAYOUT, fresh, stepped, 0, _speeds)[0][1], u[1])
+    assert torch.equal(guarded(u, x, LAYOUT, fresh, STILL, stepped, 0, _speeds)[0][1], u[1])
     for t in (1, 7):
         assert torch.equal(
-            guarded(u, x, LAYOUT, fresh, stepped, t, _speeds)[0][1],
+            guarded(u, x, LAYOUT, fresh, STILL, stepped, t, _speeds)[0][1],
             torch.tensor([-0.5, -1.5], dtype=F64),
         )
 
@@ -114,7 +170,7 @@ def test_the_guard_bounds_torques_and_brakes_while_a_bound_is_passed() -> None:
 def test_the_actor_tracks_each_rollouts_closest_approach(tmp_path: Path) -> None:
     policy = GaussianPolicy(LAYOUT.dX, LAYOUT.dU)
     policy.set_guard(Guard(torch.full((2,), 1e6, dtype=F64), torch.ones(1, 2, dtype=F64),
-                           torch.tensor(1.0, dtype=F64), torch.tensor(0.05, dtype=F64)))  # fmt: skip
+                           torch.tensor(1.0, dtype=F64), torch.tensor(0.05, dtype=F64), NO_HOVER))  # fmt: skip
     actor = policy_actor(policy, _speeds)
     near, far = _states([[0.0, 0.0]] * 2, [0.1, 0.1]), _states([[0.0, 0.0]] * 2, [0.1, 0.2])
     actor(0, near, slice(0, 2))
@@ -129,7 +185,7 @@ def test_the_actor_tracks_each_rollouts_closest_approach(tmp_path: Path) -> None
     save_policy(tmp_path, policy)
     loaded = load_policy(tmp_path)
     for a, b in zip(loaded.guard, policy.guard, strict=True):
-        assert torch.equal(a, b)
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True)
     # per-step trip speeds round-trip too; a policy saved with one speed per joint (before
     # per-step speeds) loads as one row for every step, and one saved without a retreat
     # (before the retreat trip) with none
@@ -169,7 +225,7 @@ def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
     layout = StateLayout(dU)
     inertia = torch.randn(dU, dU, dtype=F64, generator=g)
     policy.set_guard(Guard(torch.full((dU,), 50.0, dtype=F64), torch.full((1, dU), 2.0, dtype=F64),
-                           torch.tensor(0.5, dtype=F64), torch.tensor(0.05, dtype=F64)))  # fmt: skip
+                           torch.tensor(0.5, dtype=F64), torch.tensor(0.05, dtype=F64), NO_HOVER))  # fmt: skip
     x = torch.randn(n, dX, dtype=F64, generator=g)
     x[::3, layout.qd] *= 4.0  # rows 0, 3, 6, 9 trip the brake
     noise = torch.randn(n, 3, dU, dtype=F64, generator=g)

@@ -46,9 +46,10 @@ def guard_of(data: list[ConditionSamples], layout: StateLayout, cfg: PolicyConfi
     x = torch.cat([torch.cat([d.x, d.final_state[:, None]], 1) for d in full])  # type: ignore[index]  # final_state checked above
     mean_cur = torch.cat([d.mean_cur for d in full])
     with intra_op_threads(cfg.num_threads):  # as the S-step: the same bits in any process
+        hover = None if cfg.guard_hover is None else (cfg.guard_hover, cfg.guard_hover_time)
         return fit_guard(
             x, mean_cur, layout, cfg.guard_torque, cfg.guard_speed, cfg.guard_window,
-            cfg.guard_retreat, cfg.guard_brake,
+            cfg.guard_retreat, cfg.guard_brake, hover,
         )  # fmt: skip
 
 

@@ -18,7 +18,8 @@ class PolicyActor:
     """``u_t = mu_theta(x_t) + shifted_t`` for the batch's rows ``rows`` (no noise when
     ``shifted`` is None), through the policy's guard (:func:`guarded`, braking by the arm's
     model ``stopping``), which remembers per row the tip's closest approach to its target in
-    this rollout (``closest``, m, grown to the rows seen, forgotten at t = 0); plain data, so
+    this rollout (``closest``, m) and whether its brake steers it above the target
+    (``steering``), both grown to the rows seen and forgotten at t = 0; plain data, so
     that it can be sent to a worker process. ``by_rows``: the row-wise form
     (:meth:`rowwise`). The policy's tensors, its guard and the state's layout are taken out of
     it once, when the actor is made (``acting``, ``guard``, ``layout``): a step evaluates the
@@ -28,6 +29,7 @@ class PolicyActor:
     stopping: Stopping
     shifted: Tensor | None  # [N, T, dU]: chol(Sigma_pi) eps_t per rollout
     closest: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.float64))
+    steering: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
     by_rows: bool = False
     acting: Acting = field(init=False, repr=False)
     guard: Guard = field(init=False, repr=False)
@@ -41,7 +43,12 @@ class PolicyActor:
     def rowwise(self) -> Actor:
         """The same actor computing each row alone (every matrix product of the policy by
         :func:`matmul_rows`; the brake is row by row already), for rows stepped together."""
-        return replace(self, closest=torch.zeros(0, dtype=torch.float64), by_rows=True)
+        return replace(
+            self,
+            closest=torch.zeros(0, dtype=torch.float64),
+            steering=torch.zeros(0, dtype=torch.bool),
+            by_rows=True,
+        )
 
     def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
         with torch.no_grad():
@@ -52,10 +59,15 @@ class PolicyActor:
             grown = torch.full((stop,), torch.inf, dtype=x.dtype, device=x.device)
             grown[: self.closest.shape[0]] = self.closest
             self.closest = grown
+            steering = torch.zeros(stop, dtype=torch.bool, device=x.device)
+            steering[: self.steering.shape[0]] = self.steering
+            self.steering = steering
         if t == 0:
             self.closest[start:stop] = torch.inf
-        u, self.closest[start:stop] = guarded(
-            u, x, self.layout, self.closest[start:stop], self.guard, t, self.stopping,
+            self.steering[start:stop] = False
+        u, self.closest[start:stop], self.steering[start:stop] = guarded(
+            u, x, self.layout, self.closest[start:stop], self.steering[start:stop], self.guard,
+            t, self.stopping,
         )  # fmt: skip
         return u
 

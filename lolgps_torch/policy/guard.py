@@ -36,8 +36,7 @@ than 8 at 90-100 % of poses within the joint limits, so it flung what it should 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -49,19 +48,29 @@ from lolgps_torch.state import StateLayout
 class Guard(NamedTuple):
     """Torque bounds ``tau [dU]``, the speeds ``v [S, dU]`` that trip the brake (row ``t`` at
     step ``t``, the last row from there on: ``S = 1`` is one speed for every step), the share
-    ``beta`` of the joint speeds the brake takes away per control step (0-d; 0: none) and the
-    tip's retreat ``rho`` (m, 0-d; inf: none) that trips it (module docstring)."""
+    ``beta`` of the joint speeds the brake takes away per control step (0-d; 0: none), the
+    tip's retreat ``rho`` (m, 0-d; inf: none) that trips it, and ``hover = (h, tau_h)``
+    ``[2]``: the brake steers the peg to h (m) above its target at 1/tau_h of the distance per
+    second until the tip is within ``HOVER_RELEASE`` of that point (NaN: it stops the arm
+    where it is; module docstring)."""
 
     torque: Tensor
     speed: Tensor
     brake: Tensor
     retreat: Tensor
+    hover: Tensor
 
     @classmethod
     def off(cls, dU: int, device: torch.device | str = "cpu") -> Guard:
         """A guard that never acts: unbounded torques and speeds."""
         inf = torch.full((dU,), float("inf"), dtype=torch.float64, device=device)
-        return cls(inf, inf[None].clone(), torch.zeros_like(inf[0]), inf[0].clone())
+        nan = torch.full((2,), float("nan"), dtype=torch.float64, device=device)
+        return cls(inf, inf[None].clone(), torch.zeros_like(inf[0]), inf[0].clone(), nan)
+
+    @property
+    def hovers(self) -> bool:
+        """Whether the brake steers the peg above its target rather than stopping it."""
+        return bool(self.hover.isfinite().all())
 
     def speed_at(self, t: int) -> Tensor:
         """The trip speeds at step ``t``, ``[dU]``."""
@@ -77,12 +86,14 @@ def fit_guard(
     window: int | None,
     retreat_margin: float | None,
     beta: float,
+    hover: tuple[float, float] | None = None,
 ) -> Guard:
     """The guard of rollouts with states ``x: [M, T+1, dX]`` (``x_T`` the state after the last
     action; its blocks as ``layout`` says) and teacher means ``mean_cur: [M, T, dU]`` (M >= 1),
     braking ``beta`` of the speeds away per step; ``torque_margin`` None leaves torques unbounded;
     ``window`` the steps before t from which on D_g's largest speed sets step t's trip speed
-    (None: over every step); ``retreat_margin`` None: no retreat trips the brake."""
+    (None: over every step); ``retreat_margin`` None: no retreat trips the brake; ``hover``
+    (h, tau_h) steers the braked arm above its target (None: stops it)."""
     if x.shape[0] == 0:
         raise LolgpsError("the policy's guard needs at least one rollout")
     speeds = x[..., layout.qd]  # [M, T+1, n]
@@ -100,7 +111,8 @@ def fit_guard(
     distance = tip_distance(x, layout)  # [M, T+1]
     retreat = (distance - distance.cummin(1).values).amax()
     retreat = retreat + (math.inf if retreat_margin is None else retreat_margin)
-    return Guard(torque, speed_margin * envelope, torch.tensor(beta).to(torque), retreat)
+    above = torque.new_tensor([math.nan, math.nan] if hover is None else hover)
+    return Guard(torque, speed_margin * envelope, torch.tensor(beta).to(torque), retreat, above)
 
 
 def tip_distance(x: Tensor, layout: StateLayout) -> Tensor:
@@ -109,7 +121,15 @@ def tip_distance(x: Tensor, layout: StateLayout) -> Tensor:
     return torch.linalg.vector_norm(x[..., tip : tip + 3], dim=-1)
 
 
-Stopping = Callable[[Tensor], Tensor]  # states [n, dX] -> M(q) q-dot / dt, [n, dU]
+HOVER_RELEASE = 0.02  # m: the steered tip hands back to the policy this near its hover point
+
+
+class Stopping(Protocol):
+    """The arm model's braking torque at states ``x [n, dX]``: ``M(q) q-dot / dt``, or with
+    ``hover = (h, tau_h)`` ``M(q) (q-dot - v) / dt``, v steering the peg to h above its target
+    (:meth:`lolgps_torch.sim.model.ControlStep.stopping`)."""
+
+    def __call__(self, x: Tensor, hover: Tensor | None = None) -> Tensor: ...
 
 
 def guarded(
@@ -117,20 +137,32 @@ def guarded(
     x: Tensor,
     layout: StateLayout,
     closest: Tensor,
+    steering: Tensor,
     guard: Guard,
     t: int,
     stopping: Stopping,
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """Actions ``u: [n, dU]`` at step ``t`` and states ``x: [n, dX]`` (blocks as ``layout``)
     through the guard, given each rollout's closest approach to its target before ``t``
-    (``closest [n]``, m; inf at the start); returns the actions and the closest approach up
-    to ``t``. ``stopping(x)`` is the torque that stops the joints within one control step,
-    ``M(q) q-dot / dt`` (evaluated only where a row brakes)."""
+    (``closest [n]``, m; inf at the start) and whether its brake is steering it to the hover
+    point (``steering [n]``, bool); returns the actions, the closest approach up to ``t`` and
+    the steering after ``t``. ``stopping`` gives the brake's torque (:class:`Stopping`,
+    evaluated only where a row brakes). A row brakes while a bound is passed and, with the
+    guard's hover, from then on until its tip is within :data:`HOVER_RELEASE` of the point h
+    above its target."""
     qd, distance = x[..., layout.qd], tip_distance(x, layout)
     closest = torch.minimum(closest, distance)
     braking = (qd.abs() > guard.speed_at(t)).any(-1) | (distance - closest > guard.retreat)
+    hover = guard.hover if guard.hovers else None
+    if hover is not None:
+        tip = x[..., layout.points.start : layout.points.start + 3].clone()
+        tip[..., 2] -= hover[0]
+        braking = braking | (steering & (torch.linalg.vector_norm(tip, dim=-1) > HOVER_RELEASE))
     held = u
     if bool(braking.any()):
         held = u.clone()
-        held[braking] = -guard.brake * stopping(x[braking])
-    return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest
+        held[braking] = -guard.brake * (
+            stopping(x[braking]) if hover is None else stopping(x[braking], hover)
+        )
+    held = torch.maximum(torch.minimum(held, guard.torque), -guard.torque)
+    return held, closest, braking if hover is not None else steering

@@ -78,15 +78,32 @@ class ControlStep:
             [q, qd, x[..., lay.points] + moved, moved / self.config.dt, self._shifted(x, u)], -1
         )
 
-    def stopping(self, x: Tensor) -> Tensor:
+    def stopping(self, x: Tensor, hover: Tensor | None = None) -> Tensor:
         """The torque that stops the joints of states ``x: [n, dX]`` within one control step by
         the URDF's model, ``M(q) q-dot / dt`` (``[n, dU]``, gravity compensated, Coriolis and
-        damping left out); each row computed alone, so its bits do not depend on the others."""
+        damping left out); each row computed alone, so its bits do not depend on the others.
+
+        With ``hover = (h, tau)`` it is the torque that changes the joint speeds to ``v``
+        within the step instead, ``M(q) (q-dot - v) / dt``, where ``v`` moves both peg points
+        straight towards their targets raised by h (m), at 1/tau of their distance per second:
+
+            v = J^T (J J^T + mu I)^-1 e / tau,   e = (h z - (p_tip - p*_tip), h z - (p_top - p*_top))
+
+        with J = dP/dq the points' Jacobian (``[6, n]``), z the vertical and mu = 1e-4 m^2
+        (damped least squares, bounded near singular poses)."""
         lay = self.layout
-        rows = [
-            (self.urdf.mass_matrix(q[None])[0] * qd).sum(-1)
-            for q, qd in zip(x[:, lay.q], x[:, lay.qd], strict=True)
-        ]
+        rows = []
+        for row in x:
+            q, qd = row[lay.q], row[lay.qd]
+            frames = self.urdf.frames(q[None])
+            if hover is not None:
+                raised = torch.zeros(6, dtype=x.dtype, device=x.device)
+                raised[2::3] = hover[0]
+                J = self._point_jacobian(frames, self.urdf.points(frames).flatten(-2))[0]
+                e = raised - row[lay.points]
+                JJ = J @ J.T + 1e-4 * torch.eye(6, dtype=x.dtype, device=x.device)
+                qd = qd - J.T @ torch.linalg.solve(JJ, e) / hover[1]
+            rows.append((self.urdf.mass_matrix(q[None])[0] * qd).sum(-1))
         return torch.stack(rows) / self.config.dt
 
     def _commands(self, x: Tensor, u: Tensor) -> Tensor:

@@ -2,7 +2,8 @@
 
     python scripts/research/guard_variants.py SWEEP_OR_RUN ... --out DIR [--speed V]
                                               [--window W] [--retreat R] [--brake B]
-                                              [--torque T | --no-torque] [--off] [--workers N]
+                                              [--torque T | --no-torque] [--hover H TIME]
+                                              [--off] [--workers N]
 
 Each evaluated run folder (a sweep folder stands for every evaluated run in it) is copied to
 ``DIR/<run name>`` without its replay, its stage checkpoints' guards re-set, and evaluated on
@@ -17,7 +18,9 @@ largest speed from W steps before each step on. ``--retreat R`` fits the retreat
 brake to the replay as well, R metres beyond D_g's largest (a run trained before the retreat
 trip has none); with either, ``--torque T`` is fitted to the replay too, T times the largest
 teacher torque (a run trained without a bound has none to rescale). ``--brake B`` has the brake take B of the joint speeds away per control
-step instead of the run's share (default: the run's). The policies themselves are the runs' own, so
+step instead of the run's share (default: the run's). ``--hover H TIME`` has the brake steer the
+peg to H m above its target, with time constant TIME s, until the tip is within 2 cm of that
+point, instead of stopping the arm where it is. The policies themselves are the runs' own, so
 only acting (by this checkout's guard) changes; compare with
 ``scripts/research/seed_table.py RUNS DIR --label trained variant``.
 """
@@ -58,6 +61,14 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--window", type=int, default=None, help="per-step trip speeds")
     parser.add_argument("--retreat", type=float, default=None, help="retreat trip margin (m)")
     parser.add_argument("--brake", type=float, default=None, help="brake's share per step")
+    parser.add_argument(
+        "--hover",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("H", "TIME"),
+        help="the brake steers the peg H m above its target with time constant TIME s",
+    )
     parser.add_argument("--off", action="store_true", help="no guard at all")
     parser.add_argument("--workers", type=int, default=2, help="evaluation processes")
     args = parser.parse_args()
@@ -73,6 +84,8 @@ def parse_args() -> argparse.Namespace:
         raise LolgpsError(f"--window must be at least 0, got {args.window}")
     if args.workers < 1:
         raise LolgpsError(f"--workers must be at least 1, got {args.workers}")
+    if args.hover is not None and not (0.0 <= args.hover[0] < math.inf and args.hover[1] > 0):
+        raise LolgpsError(f"--hover needs a height >= 0 and a time > 0, got {args.hover}")
     return args
 
 
@@ -116,7 +129,8 @@ def reguarded(
     else:
         torque = guard.torque
     brake = guard.brake if args.brake is None else torch.tensor(args.brake).to(guard.brake)
-    return Guard(torque, speed, brake, retreat)
+    hover = guard.hover if args.hover is None else guard.hover.new_tensor(args.hover)
+    return Guard(torque, speed, brake, retreat, hover)
 
 
 def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None:
