@@ -37,16 +37,19 @@ from lolgps_torch.types import (
 )
 
 
-def guard_of(data: list[ConditionSamples], layout: StateLayout, cfg: PolicyConfig) -> Guard | None:
+def guard_of(
+    data: list[ConditionSamples], layout: StateLayout, cfg: PolicyConfig, depth: float
+) -> Guard | None:
     """The guard :func:`fit_guard` fits to the conditions' D_g ``data`` (None where none holds
-    a full rollout; states as ``layout`` says), with ``cfg``'s margins."""
+    a full rollout; states as ``layout`` says), with ``cfg``'s margins; its hover point, if
+    any, ``cfg.guard_hover`` above the mouth of a hole ``depth`` (m) deep."""
     full = [d for d in data if d.final_state is not None and d.x.shape[0] > 0]
     if not full:
         return None
     x = torch.cat([torch.cat([d.x, d.final_state[:, None]], 1) for d in full])  # type: ignore[index]  # final_state checked above
     mean_cur = torch.cat([d.mean_cur for d in full])
     with intra_op_threads(cfg.num_threads):  # as the S-step: the same bits in any process
-        hover = None if cfg.guard_hover is None else (cfg.guard_hover, cfg.guard_hover_time)
+        hover = None if cfg.guard_hover is None else (depth + cfg.guard_hover, cfg.guard_hover_time)
         return fit_guard(
             x, mean_cur, layout, cfg.guard_torque, cfg.guard_speed, cfg.guard_window,
             cfg.guard_retreat, cfg.guard_brake, hover,
@@ -178,7 +181,7 @@ class Distiller:
 
     def _set_guard(self, policy: GaussianPolicy, data: list[ConditionSamples]) -> None:
         """The policy's guard from every condition's D_g (:func:`guard_of`)."""
-        guard = guard_of(data, self.task.layout, self.config)
+        guard = guard_of(data, self.task.layout, self.config, self.task.config.world.depth)
         if guard is not None:
             policy.set_guard(guard)
 

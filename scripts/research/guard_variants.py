@@ -19,7 +19,7 @@ brake to the replay as well, R metres beyond D_g's largest (a run trained before
 trip has none); with either, ``--torque T`` is fitted to the replay too, T times the largest
 teacher torque (a run trained without a bound has none to rescale). ``--brake B`` has the brake take B of the joint speeds away per control
 step instead of the run's share (default: the run's). ``--hover H TIME`` has the brake steer the
-peg to H m above its target, with time constant TIME s, until the tip is within 2 cm of that
+peg to H m above the hole's mouth, with time constant TIME s, until the tip is within 2 cm of that
 point, instead of stopping the arm where it is. The policies themselves are the runs' own, so
 only acting (by this checkout's guard) changes; compare with
 ``scripts/research/seed_table.py RUNS DIR --label trained variant``.
@@ -67,7 +67,7 @@ def parse_args() -> argparse.Namespace:
         nargs=2,
         default=None,
         metavar=("H", "TIME"),
-        help="the brake steers the peg H m above its target with time constant TIME s",
+        help="the brake steers the peg H m above the hole's mouth, time constant TIME s",
     )
     parser.add_argument("--off", action="store_true", help="no guard at all")
     parser.add_argument("--workers", type=int, default=2, help="evaluation processes")
@@ -90,11 +90,16 @@ def parse_args() -> argparse.Namespace:
 
 
 def reguarded(
-    guard: Guard, trained: dict[str, float], args: argparse.Namespace, data: list[ConditionSamples]
+    guard: Guard,
+    trained: dict[str, float],
+    args: argparse.Namespace,
+    data: list[ConditionSamples],
+    depth: float,
 ) -> Guard:
     """``guard`` with the margins ``args`` asks for, its bounds rescaled from the ``trained``
     margins (``guard_speed``, ``guard_torque`` of the run's policy config); with a window, its
-    trip speeds fitted per step to the D_g ``data``."""
+    trip speeds fitted per step to the D_g ``data``; a hover point above the mouth of the
+    run's hole, ``depth`` (m) deep."""
     if args.off:
         return Guard.off(guard.torque.shape[0], guard.torque.device)
     fitted = None
@@ -105,7 +110,7 @@ def reguarded(
             guard_speed=args.speed or trained["guard_speed"], guard_window=window,
             guard_retreat=args.retreat, guard_torque=args.torque,
         )  # fmt: skip
-        fitted = guard_of(data, StateLayout(guard.torque.shape[0]), config)
+        fitted = guard_of(data, StateLayout(guard.torque.shape[0]), config, depth)
         if fitted is None:
             raise LolgpsError("--window, --retreat: a checkpoint's conditions hold no rollout")
     if args.window is not None and fitted is not None:
@@ -115,27 +120,37 @@ def reguarded(
     else:
         speed = guard.speed
     retreat = guard.retreat if args.retreat is None or fitted is None else fitted.retreat
+    torque = _torque(guard, trained, args, fitted)
+    brake = guard.brake if args.brake is None else torch.tensor(args.brake).to(guard.brake)
+    hover = guard.hover
+    if args.hover is not None:
+        hover = guard.hover.new_tensor([depth + args.hover[0], args.hover[1]])
+    return Guard(torque, speed, brake, retreat, hover)
+
+
+def _torque(
+    guard: Guard, trained: dict[str, float], args: argparse.Namespace, fitted: Guard | None
+) -> torch.Tensor:
+    """The torque bound ``args`` asks for (:func:`reguarded`)."""
     if args.no_torque:
-        torque = torch.full_like(guard.torque, math.inf)
+        return torch.full_like(guard.torque, math.inf)
     elif args.torque and fitted is not None:
-        torque = fitted.torque
+        return fitted.torque
     elif args.torque:
         if trained["guard_torque"] is None:
             raise LolgpsError(
                 "--torque: the runs were trained without a torque bound (add --window or "
                 "--retreat to fit it to the replay)"
             )
-        torque = guard.torque * (args.torque / trained["guard_torque"])
+        return guard.torque * (args.torque / trained["guard_torque"])
     else:
-        torque = guard.torque
-    brake = guard.brake if args.brake is None else torch.tensor(args.brake).to(guard.brake)
-    hover = guard.hover if args.hover is None else guard.hover.new_tensor(args.hover)
-    return Guard(torque, speed, brake, retreat, hover)
+        return guard.torque
 
 
 def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None:
     """The run ``source`` copied to ``target`` (no replay, no evaluation), guards re-set."""
-    trained = json.loads((source / "config.json").read_text())["stream"]["policy"]
+    config = json.loads((source / "config.json").read_text())
+    trained, depth = config["stream"]["policy"], config["task"]["world"]["depth"]
     if not trained.get("guard", False):
         raise LolgpsError(f"{source}: its policies were trained without a guard")
     shutil.rmtree(target, ignore_errors=True)
@@ -146,7 +161,7 @@ def copy_reguarded(source: Path, target: Path, args: argparse.Namespace) -> None
         policy = load_policy(checkpoint)
         last = int(checkpoint.name.rsplit("_", 1)[-1]) if records else -1
         data = [r.samples for r in records if r.condition <= last]
-        policy.set_guard(reguarded(policy.guard, trained, args, data))
+        policy.set_guard(reguarded(policy.guard, trained, args, data, depth))
         save_policy(checkpoint, policy)
     print(f"{target}: the last policy's retreat trip rho {float(policy.guard.retreat):.4f} m")
 
