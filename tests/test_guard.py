@@ -116,7 +116,14 @@ def test_a_steered_rollout_brakes_until_it_reaches_its_hover_point() -> None:
                             guard, 0, stopping)  # fmt: skip
     assert after.tolist() == [True, True, False, False]
     assert out.tolist() == [[-1.0, -1.0], [-1.0, -1.0], [0.5, 0.5], [0.5, 0.5]]
-    assert calls and torch.equal(calls[0], hover)
+    assert len(calls) == 1 and torch.equal(calls[0], hover)
+    # nearer its target than the hover point, a row that trips is stopped where it is, not
+    # pulled up, and is not steered afterwards
+    low = _states([[2.0, 0.0], [0.0, 0.0]], [0.05, 0.05])
+    out, _, after = guarded(u[:2], low, LAYOUT, torch.full((2,), 0.05, dtype=F64),
+                            torch.tensor([False, True]), guard, 0, stopping)  # fmt: skip
+    assert after.tolist() == [False, False] and calls[-1] is None
+    assert out.tolist() == [[-1.0, -1.0], [0.5, 0.5]]
     plain = guard._replace(hover=NO_HOVER)
     out, _, after = guarded(u, x, LAYOUT, torch.full((4,), torch.inf, dtype=F64), steering,
                             plain, 0, _speeds)  # fmt: skip

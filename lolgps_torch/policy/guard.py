@@ -147,22 +147,30 @@ def guarded(
     (``closest [n]``, m; inf at the start) and whether its brake is steering it to the hover
     point (``steering [n]``, bool); returns the actions, the closest approach up to ``t`` and
     the steering after ``t``. ``stopping`` gives the brake's torque (:class:`Stopping`,
-    evaluated only where a row brakes). A row brakes while a bound is passed and, with the
-    guard's hover, from then on until its tip is within :data:`HOVER_RELEASE` of the point h
-    above its target."""
+    evaluated only where a row brakes). A row brakes while a bound is passed. With the guard's
+    hover, a row further from its target than the hover point h above it is steered there
+    instead, and goes on being steered until its tip is within :data:`HOVER_RELEASE` of that
+    point (or nearer its target than h); nearer than h, it is stopped where it is, so that a
+    peg at the mouth or in the hole is never pulled out."""
     qd, distance = x[..., layout.qd], tip_distance(x, layout)
     closest = torch.minimum(closest, distance)
     braking = (qd.abs() > guard.speed_at(t)).any(-1) | (distance - closest > guard.retreat)
-    hover = guard.hover if guard.hovers else None
-    if hover is not None:
-        tip = x[..., layout.points.start : layout.points.start + 3].clone()
-        tip[..., 2] -= hover[0]
-        braking = braking | (steering & (torch.linalg.vector_norm(tip, dim=-1) > HOVER_RELEASE))
     held = u
-    if bool(braking.any()):
+    if not guard.hovers:
+        if bool(braking.any()):
+            held = u.clone()
+            held[braking] = -guard.brake * stopping(x[braking])
+        return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest, steering
+    tip = x[..., layout.points.start : layout.points.start + 3].clone()
+    tip[..., 2] -= guard.hover[0]
+    above = distance > guard.hover[0]  # further from the target than the hover point is
+    away = torch.linalg.vector_norm(tip, dim=-1) > HOVER_RELEASE
+    steered = (braking | (steering & away)) & above
+    stopped = braking & ~steered
+    if bool(steered.any() or stopped.any()):
         held = u.clone()
-        held[braking] = -guard.brake * (
-            stopping(x[braking]) if hover is None else stopping(x[braking], hover)
-        )
-    held = torch.maximum(torch.minimum(held, guard.torque), -guard.torque)
-    return held, closest, braking if hover is not None else steering
+        if bool(steered.any()):
+            held[steered] = -guard.brake * stopping(x[steered], guard.hover)
+        if bool(stopped.any()):
+            held[stopped] = -guard.brake * stopping(x[stopped])
+    return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest, steered
