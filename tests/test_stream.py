@@ -16,11 +16,10 @@ import pybullet_data
 import pytest
 import torch
 from conftest import ScriptRun, ci_stream_command, finish_script, start_script
-from test_replay import make_samples
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
-from lolgps_torch.lolgps.distillation import Labelled, Labels
+from lolgps_torch.lolgps.distillation import Labels
 from lolgps_torch.lolgps.onpolicy import Checked, CheckedSStep, Visit
 from lolgps_torch.lolgps.stream import Outcome, StreamLearner, Successes
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
@@ -260,35 +259,6 @@ def test_onpolicy_rounds_run_and_refit_on_every_visit_so_far(
         ["rows of 5", "rows of 1000008"],
     ]
     assert checked.visited == ["rows of 5", "rows of 1000008", "rows of 2000011"]
-
-
-def test_neighbours_are_learnt_from_and_visited_but_not_checked(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """A neighbour's D_g joins the first fit as labelled rows of its condition; the policy
-    visits its hole after the learnt ones, and only the learnt positions decide the rounds."""
-    monkeypatch.setattr(  # the scripted rows are markers: joining them lists them
-        "lolgps_torch.lolgps.onpolicy.VisitedRows.cat", staticmethod(lambda parts: list(parts))
-    )
-    samples = make_samples(2, 2, 3, 1, has_pre=False, seed=0)
-    beside = Labelled((0.02, 0.0), samples, Labels(None, None, 0))  # type: ignore[arg-type]
-    distill, policy = _ScriptedDistiller(), GaussianPolicy(3, 1)
-    offsets = []
-
-    def visits(policy, teachers, seed, label):  # type: ignore[no-untyped-def]
-        offsets.append([t.offset for t in teachers])
-        return Visit([0.001, 0.001, 0.5], "visit", 3)  # the neighbour missed
-
-    sstep = CheckedSStep(distill, visits, 0.06, True, 0, 3)  # type: ignore[arg-type]
-    item = SimpleNamespace(offset=(0.01, 0.0), data=SimpleNamespace(x=torch.zeros(1, 2, 3)),
-                           labels=None)  # fmt: skip
-    checked = sstep(policy, item, 5, [beside])  # type: ignore[arg-type]
-    assert offsets == [[(0.0, 0.0), (0.01, 0.0), (0.02, 0.0)]]
-    assert checked.distances == [0.001, 0.001] and checked.rounds == 0  # no repair
-    (first,) = distill.calls[0][3]  # the neighbour's rows, of the new condition (1), t 0 1 0 1
-    assert torch.equal(first.rows.x, samples.x.flatten(0, 1))
-    assert first.condition.tolist() == [1] * 4 and first.t.tolist() == [0, 1, 0, 1]
-    assert checked.visited[1] == "visit"  # type: ignore[index]
 
 
 def test_retention_script_tabulates_every_checkpoint(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -15,7 +14,6 @@ from lolgps_torch.controllers import smoothed_noise
 from lolgps_torch.errors import NumericalError
 from lolgps_torch.lolgps import plans
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, initial_controller, iterate
-from lolgps_torch.lolgps.neighbours import Neighbours
 from lolgps_torch.lolgps.plans import PlannedStarts
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
 from lolgps_torch.sim.rollout import LinearGaussianActor, linear_gaussian_actor
@@ -87,7 +85,7 @@ def test_a_first_controller_planned_on_a_worker_is_the_one_planned_here(
     task, config, offset = tasks[1], LocalConfig(model_plans=2), (0.01, -0.01)
     inline = LocalLearner(task, offset, config, seed=0)
     starts, calls = PlannedStarts(task, config), counted_plans(monkeypatch)
-    starts.request([offset])
+    starts.request(offset)
     zero = torch.zeros(3, task.T, task.layout.dU, dtype=torch.float64)
     actor = linear_gaussian_actor(initial_controller(task, config), zero)
     assert torch.equal(task.sample(actor, OFFSETS).x, tasks[0].sample(actor, OFFSETS).x)
@@ -107,12 +105,12 @@ def test_a_first_controller_is_planned_here_where_the_worker_cannot_give_it(
     starts, calls = PlannedStarts(tasks[1], config), counted_plans(monkeypatch)
     with monkeypatch.context() as patched:
         patched.setattr(torch, "get_num_threads", lambda: 0)
-        starts.request([offset])
+        starts.request(offset)
     failed = LocalLearner(tasks[1], offset, config, seed=0, planner=starts.plan)
-    starts.request([(0.02, 0.0)])
+    starts.request((0.02, 0.0))
     elsewhere = LocalLearner(tasks[1], offset, config, seed=0, planner=starts.plan)
     one = PlannedStarts(tasks[0], config)
-    one.request([offset])
+    one.request(offset)
     alone = LocalLearner(tasks[0], offset, config, seed=0, planner=one.plan)
     assert len(calls) == 3 and one.pool is None
     for learner in (failed, elsewhere, alone):
@@ -121,37 +119,6 @@ def test_a_first_controller_is_planned_here_where_the_worker_cannot_give_it(
     zero = torch.zeros(2, tasks[1].T, tasks[1].layout.dU, dtype=torch.float64)
     actor = linear_gaussian_actor(inline.p_cur, zero)
     assert tasks[1].sample(actor, OFFSETS[:2]).x.isfinite().all()  # the pool still works
-
-
-def test_neighbours_are_planned_on_the_worker_and_labelled_by_their_teachers(
-    tasks: tuple[PegTask, PegTask], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Each neighbour lies within the radius, drawn from the seed alone; requested with the
-    condition's plan, its teacher is the worker's plan, bit for bit the one made here, and
-    its successful samples are labelled by it."""
-    task, config, offset = tasks[1], LocalConfig(), (0.0, 0.01)
-    here, _ = Neighbours(task, 2, 0.03, 3, config)(offset, seed=4)
-    starts, calls = PlannedStarts(task, config), counted_plans(monkeypatch)
-    ahead = Neighbours(task, 2, 0.03, 3, config, starts.plan)
-    holes = ahead.offsets(offset, seed=4)
-    assert holes == ahead.offsets(offset, seed=4) != ahead.offsets(offset, seed=5)
-    assert all(0.0 < math.dist(hole, offset) <= 0.03 for hole in holes)
-    starts.request([(0.05, 0.0), *holes])
-    found, drawn = ahead(offset, seed=4)
-    assert not calls and drawn == 6 and found  # planned by the worker
-    assert [n.offset for n in found] == [n.offset for n in here]
-    for a, b in zip(found, here, strict=True):
-        assert a.offset in holes and torch.equal(a.data.x, b.data.x)
-        assert all(torch.equal(u, v) for u, v in zip(a.labels.p_cur, b.labels.p_cur, strict=True))
-        assert (a.data.final_distance < task.config.world.success_threshold).all()
-        assert torch.equal(a.data.mean_cur, a.labels.p_cur.mean_action(a.data.x))
-
-
-def test_a_neighbour_whose_teacher_misses_gives_nothing(tasks: tuple[PegTask, PegTask]) -> None:
-    config = LocalConfig()
-    holding = Neighbours(tasks[0], 2, 0.03, 2, config, lambda task, t, hold, c: (hold, 0.0))
-    assert holding((0.0, 0.0), seed=0) == ([], 4)  # the hold never reaches a hole
-    assert Neighbours(tasks[0], 0, 0.03, 2, config)((0.0, 0.0), seed=0) == ([], 0)
 
 
 def test_a_blow_up_in_a_worker_is_the_numerical_error_of_the_batch(

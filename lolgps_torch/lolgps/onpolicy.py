@@ -198,30 +198,16 @@ class CheckedSStep:
         ]
         return [*stored, Teacher.of(len(stored), item.offset, item.data.x, item.labels)]
 
-    def __call__(
-        self,
-        policy: GaussianPolicy,
-        item: Labelled,
-        seed: int,
-        neighbours: Sequence[Labelled] = (),
-    ) -> Checked:
-        """Fit ``policy`` on ``item``, the replay, the ``neighbours``' D_g
-        (:mod:`lolgps_torch.lolgps.neighbours`) and the states it visits at every position
-        learnt so far and at the neighbours; the kept policy is left in ``policy``. Only the
-        learnt positions are checked."""
+    def __call__(self, policy: GaussianPolicy, item: Labelled, seed: int) -> Checked:
+        """Fit ``policy`` on ``item``, the replay and the states it visits; the kept policy is
+        left in ``policy``."""
         teachers = self.teachers(item)
-        C = len(teachers)
-        index = teachers[-1].condition
-        beside = [Teacher.of(index, n.offset, n.data.x, n.labels) for n in neighbours]
-        own = [_rows_of(n, index) for n in neighbours]
-        parts: list[VisitedRows | None] = [_joined(own)]
-        losses = self.distill(policy, [item], seed, visited=parts[0])
+        losses = self.distill(policy, [item], seed)
         if not policy.trained:
-            return Checked(losses, [float("nan")] * C, 0, None, 0)
-        seen = self.visits(policy, teachers + beside, seed, self.label)
-        parts.append(seen.visited)
-        rollouts = seen.rollouts
-        best = Checked(losses, seen.distances[:C], 0, None, 0)
+            return Checked(losses, [float("nan")] * len(teachers), 0, None, 0)
+        seen = self.visits(policy, teachers, seed, self.label)
+        parts, rollouts = [seen.visited], seen.rollouts
+        best = Checked(losses, seen.distances, 0, None, 0)
         state = copy.deepcopy(policy.state_dict())
         refit = replace(self.distill.config, steps=max(1, self.distill.config.steps // 3))
         rounds = 0
@@ -234,12 +220,12 @@ class CheckedSStep:
             visited = _joined(parts)
             round_seed = seed + 1_000_003 * rounds
             losses = self.distill(policy, [item], round_seed, missed, refit, visited)
-            seen = self.visits(policy, teachers + beside, round_seed, self.label)
+            seen = self.visits(policy, teachers, round_seed, self.label)
             parts.append(seen.visited)
             rollouts += seen.rollouts
-            if self.score(seen.distances[:C]) > self.score(best.distances):
+            if self.score(seen.distances) > self.score(best.distances):
                 best, state = (
-                    best._replace(losses=losses, distances=seen.distances[:C]),
+                    best._replace(losses=losses, distances=seen.distances),
                     copy.deepcopy(policy.state_dict()),
                 )
         policy.load_state_dict(state)
@@ -250,14 +236,7 @@ class CheckedSStep:
         return sum(d < self.threshold for d in distances), -sum(distances)
 
 
-def _rows_of(item: Labelled, condition: int) -> VisitedRows:
-    """A neighbour's D_g as labelled rows of ``condition``, with their time steps."""
-    M, T = item.data.x.shape[:2]
-    t = torch.arange(T, device=item.data.x.device).repeat(M)
-    return VisitedRows(item.data.to_batch(), torch.full_like(t, condition), t)
-
-
-def _joined(parts: Sequence[VisitedRows | None]) -> VisitedRows | None:
+def _joined(parts: list[VisitedRows | None]) -> VisitedRows | None:
     """The rows of every part that has some (None: none has)."""
     present = [part for part in parts if part is not None]
     return VisitedRows.cat(present) if present else None

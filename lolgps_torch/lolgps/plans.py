@@ -5,8 +5,8 @@ the hole offset, the hold controller and the learner's settings, not on any samp
 policy (except with ``identify``, whose model is re-identified from the rollouts before each
 condition). While a condition's S-step runs in this process, the rollout workers wait for
 rollouts: :class:`PlannedStarts` has one of them plan the next condition's first controller
-meanwhile, with those of its neighbours spread over the workers (:meth:`PlannedStarts.request`),
-and hands each to the learner that asks for it (:meth:`PlannedStarts.plan`). The worker runs the same arithmetic on the same model with as
+meanwhile (:meth:`PlannedStarts.request`) and hands it to that condition's learner
+(:meth:`PlannedStarts.plan`). The worker runs the same arithmetic on the same model with as
 many torch threads as this process, so the plan has the same bits as one made here.
 
 Where that cannot apply, the plan is made in this process when the learner starts, as without
@@ -18,7 +18,6 @@ failure in the worker (a numerical failure then happens again here, and is handl
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -73,9 +72,8 @@ class PlanErrand:
 
 
 class PlannedStarts:
-    """The first controllers of a stream's conditions (and of their neighbours,
-    :mod:`lolgps_torch.lolgps.neighbours`): planned by idle rollout workers when requested
-    (:meth:`request`), else in this process.
+    """The first controller of each condition of a stream: planned by an idle rollout worker
+    when the condition was requested (:meth:`request`), else in this process.
 
     :param task: the stream's task; its rollout workers, if any, plan ahead.
     :param config: the local learners' settings.
@@ -85,48 +83,46 @@ class PlannedStarts:
         ahead = config.dynamics.prior == "model" and config.model_plans > 0
         self.task, self.config = task, config
         self.pool = task.pool if ahead and not config.identify else None
-        self._pending: list[tuple[PlanErrand, int]] = []  # the errands and their tickets
+        self._pending: tuple[PlanErrand, int] | None = None  # the errand and its ticket
 
-    def request(self, offsets: Sequence[tuple[float, float]]) -> None:
-        """Have the rollout workers plan the first controllers at the holes ``offsets``, in
-        turn from the last worker on (nothing without an idle worker). Plans requested
-        before and not taken are dropped."""
-        if self.pool is None:
+    def request(self, offset: tuple[float, float] | None) -> None:
+        """Have a rollout worker plan the first controller at the hole ``offset`` (nothing
+        without an idle worker, or for None)."""
+        if self.pool is None or offset is None:
             return
-        while self._pending:
-            self._take(0)
-        hold = initial_controller(self.task, self.config)
-        for i, offset in enumerate(offsets):
-            errand = PlanErrand(
-                self.task.model_setup(),
-                self.task.targets([offset])[0],
-                hold,
-                self.config,
-                torch.get_num_threads(),
-            )
-            self._pending.append((errand, self.pool.submit(errand, -1 - i)))
+        self._take()  # a plan requested but not taken
+        errand = PlanErrand(
+            self.task.model_setup(),
+            self.task.targets([offset])[0],
+            initial_controller(self.task, self.config),
+            self.config,
+            torch.get_num_threads(),
+        )
+        self._pending = (errand, self.pool.submit(errand))
 
     def plan(
         self, task: PegTask, targets: Tensor, hold: LinearGaussian, config: LocalConfig
     ) -> tuple[LinearGaussian, float]:
-        """:func:`planned_controller`'s result: a worker's where a requested plan is this one
-        and succeeded, else planned here (a :class:`LocalLearner`'s ``planner``)."""
-        for place, (errand, _) in enumerate(self._pending):
-            if errand.plans(task, targets, hold, config):
-                planned = self._take(place)
-                if planned is not None:
-                    return planned
-                break
+        """:func:`planned_controller`'s result: the worker's where the requested plan is this
+        one and succeeded, else planned here (a :class:`LocalLearner`'s ``planner``)."""
+        pending, planned = self._pending, self._take()
+        if (
+            pending is not None
+            and planned is not None
+            and pending[0].plans(task, targets, hold, config)
+        ):
+            return planned
         return planned_controller(task, targets, hold, config)
 
-    def _take(self, place: int) -> tuple[LinearGaussian, float] | None:
-        """The requested plan at ``place`` among those pending, waited for if the worker is
-        still at it (None: the worker failed; then the plan is made here, where a numerical
-        failure is handled as ever)."""
-        _, ticket = self._pending.pop(place)
-        assert self.pool is not None  # plans are requested only with a pool
+    def _take(self) -> tuple[LinearGaussian, float] | None:
+        """The requested plan, waited for if the worker is still at it (None: none requested,
+        or the worker failed; then the plan is made here, where a numerical failure is handled
+        as ever)."""
+        pending, self._pending = self._pending, None
+        if pending is None or self.pool is None:
+            return None
         try:
-            planned: tuple[LinearGaussian, float] = self.pool.collect(ticket)
+            planned: tuple[LinearGaussian, float] = self.pool.collect(pending[1])
         except Exception:
             return None
         return planned

@@ -47,7 +47,6 @@ from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate
-from lolgps_torch.lolgps.neighbours import Neighbours
 from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits
 from lolgps_torch.lolgps.plans import PlannedStarts
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
@@ -98,10 +97,6 @@ class StreamConfig:
     :param onpolicy_gate: the teachers' support, in standard deviations of D_g's states.
     :param onpolicy_floor: the smallest standard deviation of a joint angle in the support
         (rad; the joint velocities': 10 times as much, rad/s).
-    :param neighbours: holes beside each condition, each with a teacher planned on the
-        arm's model (:mod:`lolgps_torch.lolgps.neighbours`; 0: none).
-    :param neighbour_radius: the disc about each condition's hole the neighbours lie in (m).
-    :param neighbour_samples: rollouts of each neighbour's teacher.
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -123,9 +118,6 @@ class StreamConfig:
     onpolicy_noisy: int = 2
     onpolicy_gate: float = 3.0
     onpolicy_floor: float = 0.005
-    neighbours: int = 0
-    neighbour_radius: float = 0.03
-    neighbour_samples: int = 5
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -154,9 +146,6 @@ class StreamConfig:
                 "onpolicy_gate": 0.0 < self.onpolicy_gate < float("inf"),
                 "onpolicy_floor": 0.0 < self.onpolicy_floor < float("inf"),
                 "transfer_phases": self.transfer_phases >= 1,
-                "neighbours": self.neighbours >= 0,
-                "neighbour_radius": 0.0 <= self.neighbour_radius < float("inf"),
-                "neighbour_samples": self.neighbour_samples >= 1,
                 "seed": self.seed >= 0,
             },
         )
@@ -210,22 +199,13 @@ class StreamLearner:
         )
         self.sstep = checked_sstep(task, config, distill)
         self.starts = PlannedStarts(task, config.local)  # each first p_cur, planned on the model
-        self.neighbours = Neighbours(
-            task,
-            config.neighbours,
-            config.neighbour_radius,
-            config.neighbour_samples,
-            config.local,
-            self.starts.plan,
-        )
 
     def learn_condition(
         self, index: int, offset: tuple[float, float], upcoming: tuple[float, float] | None = None
     ) -> ConditionSummary:
         """One condition of Algorithm 2: local learning, D_g and the S-step with replay;
         returns its summary entry. The first controller at the ``upcoming`` condition's offset
-        and its neighbours' are planned during the S-step where a rollout worker is idle
-        (:class:`PlannedStarts`)."""
+        is planned during the S-step where a rollout worker is idle (:class:`PlannedStarts`)."""
         cfg, seed = self.config, condition_seed(self.config, index)
         learner = LocalLearner(
             self.task, offset, cfg.local, seed, self.log, index, self.starts.plan
@@ -236,12 +216,9 @@ class StreamLearner:
         failure, final = outcome.failure, outcome.final
         labels, local = self.teacher(outcome, offset)  # D_g is labelled here
         data = label(self.task, outcome.found.kept, labels)
-        beside, drawn = self.neighbours(offset, seed)
-        if upcoming is not None:  # planned during the S-step, where a worker is idle
-            ahead = condition_seed(cfg, index + 1)
-            self.starts.request([upcoming, *self.neighbours.offsets(upcoming, ahead)])
+        self.starts.request(upcoming)  # planned during the S-step, where a worker is idle
         t0 = time.perf_counter()
-        checked = self.sstep(self.policy, Labelled(offset, data, labels), seed, beside)
+        checked = self.sstep(self.policy, Labelled(offset, data, labels), seed)
         losses, after, repairs = checked.losses, checked.distances[-1], checked.rounds
         rows = int(data.x.shape[0]) * self.task.T
         self.log(DistillRecord(index, time.perf_counter() - t0, rows, repairs=repairs))
@@ -258,7 +235,7 @@ class StreamLearner:
             policy_success_after=after < self.threshold,
             distill_loss=losses[-1] if losses else None,
             failure=failure,
-            rollouts=outcome.rollouts + drawn,
+            rollouts=outcome.rollouts,
             repairs=repairs,
             policy_rollouts=checked.rollouts,
             visited_rows=0 if checked.visited is None else checked.visited.R,

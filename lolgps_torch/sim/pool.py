@@ -181,12 +181,11 @@ class RolloutPool:
         x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
         return x, u, final
 
-    def submit(self, errand: Errand, worker: int = -1) -> int:
-        """Send ``errand`` to the spawned worker ``worker`` (an index that wraps round; by
-        default the last, whose block of a batch is the smallest), which runs it after the
-        jobs it already has; returns the ticket :meth:`collect` takes."""
+    def submit(self, errand: Errand) -> int:
+        """Send ``errand`` to the last worker (whose block of a batch is the smallest), which
+        runs it after the jobs it already has; returns the ticket :meth:`collect` takes."""
         ticket, self._submitted = self._submitted, self._submitted + 1
-        worker %= len(self._procs)
+        worker = len(self._procs) - 1
         self._procs[worker][1].put(pickle.dumps(errand))
         self._errands[worker].append(ticket)
         return ticket
