@@ -89,6 +89,8 @@ STREAM_FLAGS = ConfigFlags(
         "guard-window": ("policy.guard_window",),
         "guard-retreat": ("policy.guard_retreat",),
         "guard-brake": ("policy.guard_brake",),
+        "guard-hover": ("policy.guard_hover",),
+        "guard-hover-time": ("policy.guard_hover_time",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),
         "dynamics-prior": ("local.dynamics.prior",),
