@@ -93,13 +93,14 @@ def test_the_hover_brake_steers_the_peg_above_a_far_hole_in_pybullet() -> None:
 
 
 def test_a_steered_rollout_brakes_until_it_reaches_its_hover_point() -> None:
-    """With the hover, a row that tripped goes on braking (steered) after the bound is no
-    longer passed, until its tip is within 2 cm of the point h above its target; then the
-    policy acts again. Without the hover nothing is remembered."""
+    """With the hover, a row whose tip retreated past the bound goes on braking (steered)
+    after the bound is no longer passed, until its tip is within 2 cm of the point h above
+    its target; then the policy acts again. A speed passed stops the arm where it is, as
+    without the hover, which remembers nothing."""
     hover = torch.tensor([0.1, 1.0], dtype=F64)
     guard = Guard(
         torch.full((2,), torch.inf, dtype=F64), torch.tensor([[1.0, 1.0]], dtype=F64),
-        torch.tensor(1.0, dtype=F64), torch.tensor(torch.inf, dtype=F64), hover,
+        torch.tensor(1.0, dtype=F64), torch.tensor(0.04, dtype=F64), hover,
     )  # fmt: skip
     u = torch.full((4, 2), 0.5, dtype=F64)
     calls = []
@@ -108,26 +109,27 @@ def test_a_steered_rollout_brakes_until_it_reaches_its_hover_point() -> None:
         calls.append(hover)
         return torch.ones(x.shape[0], 2, dtype=F64)
 
-    # row 0 trips by speed; row 1 is steered and far from its hover point; row 2 is steered
-    # and within 2 cm of it (0.115 m above the target); row 3 neither
-    x = _states([[2.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]], [0.3, 0.3, 0.115, 0.3])
+    # row 0 retreats 0.2 m past its closest approach; row 1 is steered and far from its
+    # hover point; row 2 is steered and within 2 cm of it (0.115 m above the target); row 3
+    # passes a speed: it is stopped, not steered
+    x = _states([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [2.0, 0.0]], [0.3, 0.3, 0.115, 0.3])
     steering = torch.tensor([False, True, True, False])
-    out, _, after = guarded(u, x, LAYOUT, torch.full((4,), torch.inf, dtype=F64), steering,
-                            guard, 0, stopping)  # fmt: skip
+    closest = torch.tensor([0.1, 0.3, 0.115, 0.3], dtype=F64)
+    out, _, after = guarded(u, x, LAYOUT, closest, steering, guard, 0, stopping)
     assert after.tolist() == [True, True, False, False]
-    assert out.tolist() == [[-1.0, -1.0], [-1.0, -1.0], [0.5, 0.5], [0.5, 0.5]]
-    assert len(calls) == 1 and torch.equal(calls[0], hover)
+    assert out.tolist() == [[-1.0, -1.0], [-1.0, -1.0], [0.5, 0.5], [-1.0, -1.0]]
+    assert len(calls) == 2 and torch.equal(calls[0], hover) and calls[1] is None
     # nearer its target than the hover point, a row that trips is stopped where it is, not
     # pulled up, and is not steered afterwards
-    low = _states([[2.0, 0.0], [0.0, 0.0]], [0.05, 0.05])
-    out, _, after = guarded(u[:2], low, LAYOUT, torch.full((2,), 0.05, dtype=F64),
+    low = _states([[0.0, 0.0], [0.0, 0.0]], [0.05, 0.05])
+    out, _, after = guarded(u[:2], low, LAYOUT, torch.tensor([0.0, 0.05], dtype=F64),
                             torch.tensor([False, True]), guard, 0, stopping)  # fmt: skip
     assert after.tolist() == [False, False] and calls[-1] is None
     assert out.tolist() == [[-1.0, -1.0], [0.5, 0.5]]
     plain = guard._replace(hover=NO_HOVER)
     out, _, after = guarded(u, x, LAYOUT, torch.full((4,), torch.inf, dtype=F64), steering,
                             plain, 0, _speeds)  # fmt: skip
-    assert torch.equal(after, steering) and torch.equal(out[1:], u[1:])
+    assert torch.equal(after, steering) and torch.equal(out[:3], u[:3])
 
 
 def _states(qd: list[list[float]], distance: list[float]) -> torch.Tensor:

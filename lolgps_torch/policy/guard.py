@@ -148,13 +148,16 @@ def guarded(
     point (``steering [n]``, bool); returns the actions, the closest approach up to ``t`` and
     the steering after ``t``. ``stopping`` gives the brake's torque (:class:`Stopping`,
     evaluated only where a row brakes). A row brakes while a bound is passed. With the guard's
-    hover, a row further from its target than the hover point h above it is steered there
-    instead, and goes on being steered until its tip is within :data:`HOVER_RELEASE` of that
-    point (or nearer its target than h); nearer than h, it is stopped where it is, so that a
-    peg at the mouth or in the hole is never pulled out."""
+    hover, a row whose tip retreats past the bound while further from its target than the
+    hover point h above it is steered there instead, and goes on being steered until its tip
+    is within :data:`HOVER_RELEASE` of that point (or nearer its target than h); a row that
+    only passes a speed, or is nearer its target than h, is stopped where it is, as without
+    the hover (a reach that is too fast is slowed, then goes on; a peg at the mouth or in the
+    hole is never pulled out)."""
     qd, distance = x[..., layout.qd], tip_distance(x, layout)
     closest = torch.minimum(closest, distance)
-    braking = (qd.abs() > guard.speed_at(t)).any(-1) | (distance - closest > guard.retreat)
+    retreating = distance - closest > guard.retreat
+    braking = (qd.abs() > guard.speed_at(t)).any(-1) | retreating
     held = u
     if not guard.hovers:
         if bool(braking.any()):
@@ -165,7 +168,7 @@ def guarded(
     tip[..., 2] -= guard.hover[0]
     above = distance > guard.hover[0]  # further from the target than the hover point is
     away = torch.linalg.vector_norm(tip, dim=-1) > HOVER_RELEASE
-    steered = (braking | (steering & away)) & above
+    steered = (retreating | (steering & away)) & above
     stopped = braking & ~steered
     if bool(steered.any() or stopped.any()):
         held = u.clone()
