@@ -63,10 +63,11 @@ class PolicyConfig:
         in D_g (None: no retreat trips it). With 0.05 and the brake acting only while a bound
         is passed, no test rollout on 12 KUKA seeds ended beyond 0.3 m from its hole
         (docs/HISTORY.md, "the guard").
-    :param guard_hover: where the brake trips, it steers the peg to this height (m) above the
-        hole's mouth, moving both points there at ``1 / guard_hover_time`` of their distance
-        per second, until the tip is within 0.02 m of that point, instead of stopping the arm
-        where it is (None: stops it).
+    :param guard_hover: where the tip's retreat trips the brake while the peg is higher than
+        this (m) above the hole's mouth, the brake steers it to that height above its hole,
+        moving both points there at ``1 / guard_hover_time`` of their distance per second,
+        until the tip is within 0.02 m of that point, instead of stopping the arm where it is
+        (None: it stops it).
     :param guard_hover_time: the time constant (s) of that approach.
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
         scaled targets); the policy itself stays float64. float32 takes a third less loop
