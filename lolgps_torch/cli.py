@@ -57,12 +57,26 @@ def _param_help(owner: object, name: str) -> str:
     return " ".join(found.group(1).split()).rstrip(".").replace("%", "%%")
 
 
+def _or_none(kind: type) -> Callable[[str], Any]:
+    """The parser of an optional number's flag: ``text`` as a ``kind``, or None for ``none``
+    (named as ``kind``, so that argparse's error names the type)."""
+
+    def parse(text: str) -> Any:
+        return None if text.lower() == "none" else kind(text)
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
 def _argument(hint: Any, flag: str) -> dict[str, Any]:
     """argparse keywords for a field of type ``hint``: its type, choices for a ``Literal``,
-    ``nargs`` for a tuple; a bool is a switch (``--no-...`` turns it off)."""
+    ``nargs`` for a tuple; a bool is a switch (``--no-...`` turns it off); an optional number
+    takes ``none`` as well."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (typing.Union, types.UnionType) and type(None) in args:
         (hint,) = [a for a in args if a is not type(None)]
+        if hint in (int, float):  # "none" sets the field to None
+            return {"type": _or_none(hint)}
         origin, args = typing.get_origin(hint), typing.get_args(hint)
     if hint is bool:
         if flag.startswith("no-"):

@@ -82,6 +82,16 @@ def test_flags_follow_the_dataclass_fields() -> None:
         parser.parse_args(["--mode", "medium"])
 
 
+def test_an_optional_number_takes_none() -> None:
+    flags = ConfigFlags(Outer(width=3), renames={"steps": ("inner.steps",)}, skip=("replay",))
+    parser = argparse.ArgumentParser()
+    flags.add_to(parser)
+    assert flags.build(parser.parse_args(["--width", "none"])).width is None
+    assert flags.build(parser.parse_args(["--width", "7"])).width == 7
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--width", "wide"])
+
+
 def test_a_field_without_a_documented_param_is_a_programming_error() -> None:
     @dataclass(frozen=True)
     class Undocumented:

@@ -67,7 +67,9 @@ class PolicyConfig:
         this (m) above the hole's mouth, the brake steers it to that height above its hole,
         moving both points there at ``1 / guard_hover_time`` of their distance per second,
         until the tip is within 0.02 m of that point, instead of stopping the arm where it is
-        (None: it stops it).
+        (None, ``--guard-hover none``: it stops it). On 12 KUKA seeds every test rollout of
+        the final policy then ended within 0.16 m of its hole (0.42 m with None; docs/HISTORY.md,
+        "the hover").
     :param guard_hover_time: the time constant (s) of that approach.
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
         scaled targets); the policy itself stays float64. float32 takes a third less loop
@@ -92,7 +94,7 @@ class PolicyConfig:
     guard_window: int | None = 3
     guard_brake: float = 0.5
     guard_retreat: float | None = 0.05
-    guard_hover: float | None = None
+    guard_hover: float | None = 0.05
     guard_hover_time: float = 1.0
 
     def __post_init__(self) -> None:
