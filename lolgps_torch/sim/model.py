@@ -95,8 +95,8 @@ class ControlStep:
         rows = []
         for row in x:
             q, qd = row[lay.q], row[lay.qd]
-            frames = self.urdf.frames(q[None])
             if hover is not None:
+                frames = self.urdf.frames(q[None])
                 raised = torch.zeros(6, dtype=x.dtype, device=x.device)
                 raised[2::3] = hover[0]
                 J = self._point_jacobian(frames, self.urdf.points(frames).flatten(-2))[0]
