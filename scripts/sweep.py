@@ -1,10 +1,14 @@
-"""Run a grid of seeds x methods x arms x streams of run_stream.py on Ray, and aggregate it.
+"""Run a grid of seeds x methods x arms x streams (x variants) of run_stream.py on Ray, and
+aggregate it.
 
     python scripts/sweep.py --seeds 0-2 --methods lolgps naive batch \\
         --urdf robots/kuka_peg.urdf other.urdf --stream paper --out runs/sweep1 \\
-        [--conditions FILE] [--evaluate] [--address ADDR] [--num-cpus N] [-- run_stream flags]
+        [--conditions FILE] [--variants FILE] [--evaluate] [--address ADDR] [--num-cpus N] \\
+        [-- run_stream flags]
 
-One folder per cell under --out (``<method>-<urdf stem>-<stream>-seed<S>``), each a complete
+One folder per cell under --out (``<method>-<urdf stem>-<stream>[-<variant>]-seed<S>``; a
+``--variants`` file names run_stream flag sets, ``{"gmm": "--dynamics-prior gmm", ...}``, and
+each cell runs once per set), each a complete
 run_stream run (with eval.json when --evaluate); sweep.json records the grid, and summary.md,
 summary.csv and summary.png aggregate the seeds (mean ± sd). Without --address a local Ray
 instance with --num-cpus CPUs (default: all) runs the cells, one CPU each; --address auto

@@ -140,6 +140,43 @@ def test_a_valid_sweep_resolves_paths_and_builds_commands(tmp_path: Path) -> Non
     assert evaluate[-4:] == ["--run", str(Path(s.plan.out) / s.cells[0].name), "--workers", "1"]
 
 
+def test_variants_run_each_cell_once_per_flag_set(tmp_path: Path) -> None:
+    variants = tmp_path / "v.json"
+    variants.write_text(json.dumps({"payload": "--payload 1 --plant-seed 2", "gmm+1": ""}))
+    s = _sweep(tmp_path, "--seeds", "0-1", "--variants", str(variants), "--", *TINY)
+    assert [c.name for c in s.cells] == [
+        "lolgps-kuka_peg-paper-payload-seed0",
+        "lolgps-kuka_peg-paper-payload-seed1",
+        "lolgps-kuka_peg-paper-gmm+1-seed0",
+        "lolgps-kuka_peg-paper-gmm+1-seed1",
+    ]
+    command = sweep.stream_command(s.cells[1], s.plan, resume=False)
+    assert command[-len(TINY) - 4 :] == [*TINY, "--payload", "1", "--plant-seed", "2"]
+    assert sweep.stream_command(s.cells[2], s.plan, resume=False)[-len(TINY) :] == TINY
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[1, 2]", "expected a JSON object"),
+        ("{}", "expected a JSON object"),
+        ("{not json", "not JSON"),
+        ('{"a-b": "--payload 1"}', "may use only"),
+        ('{"a": ["--payload", "1"]}', "must be one string"),
+        ('{"a": "--seed 3"}', "sets --seed"),
+        ('{"a": "--payload \'1"}', "quotation"),
+    ],
+)
+def test_bad_variants_files_are_user_errors(tmp_path: Path, text: str, message: str) -> None:
+    variants = tmp_path / "v.json"
+    variants.write_text(text)
+    with pytest.raises(LolgpsError, match=message):
+        _sweep(tmp_path, "--variants", str(variants))
+    with pytest.raises(LolgpsError, match="--variants"):
+        _sweep(tmp_path, "--variants", str(tmp_path / "missing.json"))
+    assert not (tmp_path / "out").exists()
+
+
 def test_cell_state_follows_the_files_in_the_folder(tmp_path: Path) -> None:
     assert sweep.cell_state(tmp_path, evaluate=False) == "new"
     (tmp_path / "config.json").write_text("{}")
@@ -294,3 +331,20 @@ def test_summaries_are_written_as_markdown_csv_and_figure(fake_sweep: sweep.Swee
     assert [r["method"] for r in rows] == ["lolgps", "naive"]
     assert float(rows[0]["rollouts_mean"]) == 30.0 and rows[1]["train_success_sd"] == ""
     assert (out / "summary.png").stat().st_size > 0
+
+
+def test_variants_are_aggregated_apart(tmp_path: Path) -> None:
+    out = tmp_path / "sweep"
+    cells = sweep.make_grid([0], ["lolgps"], ["/r/kuka.urdf"], ["paper"], ["a", "b"])
+    _fake_run(out / "lolgps-kuka-paper-a-seed0", [True, True], [2, 2], 5)
+    _fake_run(out / "lolgps-kuka-paper-b-seed0", [True, False], [2, 4], 5)
+    plan = sweep.Plan(scripts="s", out=str(out), cwd=".", conditions=None, evaluate=False)
+    rows = sweep.aggregate(cells, out)
+    assert [(r["variant"], r["train_success_mean"], r["rollouts_mean"]) for r in rows] == [
+        ("a", 1.0, 20.0),
+        ("b", 0.5, 30.0),
+    ]
+    sweep.write_summaries(sweep.Sweep(cells, plan, None, 1), [])
+    markdown = (out / "summary.md").read_text()
+    assert "| method | arm | stream | variant | seeds |" in markdown
+    assert "| lolgps | kuka | paper | b | 1 | 0.50 |" in markdown

@@ -47,7 +47,8 @@ def stream_command(cell: Cell, plan: Plan, resume: bool) -> list[str]:
         command += ["--stream", cell.stream]
     if plan.conditions is not None:
         command += ["--conditions", plan.conditions]
-    return command + list(plan.stream_flags) + (["--resume"] if resume else [])
+    command += [*plan.stream_flags, *plan.variant_flags(cell.variant)]
+    return command + (["--resume"] if resume else [])
 
 
 def evaluate_command(cell: Cell, plan: Plan) -> list[str]:

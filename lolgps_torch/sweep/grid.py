@@ -1,11 +1,15 @@
-"""Sweeps of ``run_stream.py`` over a grid of seeds x methods x arms x streams, on Ray.
+"""Sweeps of ``run_stream.py`` over a grid of seeds x methods x arms x streams (x variants),
+on Ray.
 
     python scripts/sweep.py --seeds 0-2 --methods lolgps naive batch \\
         --urdf robots/kuka_peg.urdf --out runs/sweep1 [--evaluate] [--address auto] \\
-        [-- extra run_stream flags]
+        [--variants FILE] [-- extra run_stream flags]
 
 Each cell of the grid is one ``run_stream.py`` run in its own folder under ``--out``, named
-``<method>-<urdf stem>-<stream>-seed<S>``. A Ray task (one CPU) runs the cell's scripts as
+``<method>-<urdf stem>-<stream>-seed<S>``. ``--variants`` names a JSON object of named
+run_stream flag sets, ``{"payload": "--payload 1", "gmm": "--dynamics-prior gmm"}``: every
+cell then runs once per variant, with its flags after the common ones, in a folder named
+``<method>-<urdf stem>-<stream>-<variant>-seed<S>``. A Ray task (one CPU) runs the cell's scripts as
 subprocesses: ``run_stream.py`` (with ``--resume`` when the folder already holds config.json),
 then, with ``--evaluate``, ``evaluate.py --workers 1``. No PyBullet client crosses a process,
 and a cell folder is exactly a command-line run's, so it resumes the same way. The scripts'
@@ -41,18 +45,21 @@ STREAMS = (
     "square",
 )  # "paper": run_stream's default stream, no flag; others pass --stream X
 DEFAULT_URDF = "robots/kuka_peg.urdf"
+VARIANT_NAME = re.compile(r"[A-Za-z0-9_.+]+")  # a folder name's part, without '-'
 STREAM_FLAGS = ("--urdf", "--method", "--seed", "--out", "--resume", "--conditions", "--stream")
 EVALUATE_FLAGS = ("--run", "--workers")
 
 
 @dataclass(frozen=True)
 class Cell:
-    """One run of the grid: a method on an arm (its URDF file) and a stream, with a seed."""
+    """One run of the grid: a method on an arm (its URDF file) and a stream, with a seed, and
+    the name of its variant's flags ("" without variants)."""
 
     method: str
     urdf: str
     stream: str
     seed: int
+    variant: str = ""
 
     @property
     def arm(self) -> str:
@@ -61,8 +68,9 @@ class Cell:
 
     @property
     def name(self) -> str:
-        """The cell's folder name, ``<method>-<arm>-<stream>-seed<S>``."""
-        return f"{self.method}-{self.arm}-{self.stream}-seed{self.seed}"
+        """The cell's folder name, ``<method>-<arm>-<stream>[-<variant>]-seed<S>``."""
+        variant = f"-{self.variant}" if self.variant else ""
+        return f"{self.method}-{self.arm}-{self.stream}{variant}-seed{self.seed}"
 
 
 @dataclass(frozen=True)
@@ -76,6 +84,11 @@ class Plan:
     evaluate: bool
     stream_flags: tuple[str, ...] = ()
     evaluate_flags: tuple[str, ...] = ()
+    variants: tuple[tuple[str, tuple[str, ...]], ...] = ()  # (name, run_stream flags)
+
+    def variant_flags(self, variant: str) -> tuple[str, ...]:
+        """The run_stream flags of the variant named ``variant`` (none for "")."""
+        return dict(self.variants).get(variant, ())
 
 
 @dataclass(frozen=True)
@@ -133,14 +146,20 @@ def parse_seeds(tokens: Sequence[str]) -> list[int]:
 
 
 def make_grid(
-    seeds: Sequence[int], methods: Sequence[str], urdfs: Sequence[str], streams: Sequence[str]
+    seeds: Sequence[int],
+    methods: Sequence[str],
+    urdfs: Sequence[str],
+    streams: Sequence[str],
+    variants: Sequence[str] = ("",),
 ) -> tuple[Cell, ...]:
-    """The cells of the grid ``methods x urdfs x streams x seeds``, seeds varying fastest.
+    """The cells of the grid ``methods x urdfs x streams x variants x seeds``, seeds varying
+    fastest.
 
     :param seeds: run seeds
     :param methods: run_stream methods, each one of :data:`METHODS`
     :param urdfs: URDF paths; their stems name the arms and must differ
     :param streams: stream names, each one of :data:`STREAMS`
+    :param variants: the variants' names ("": none)
     """
     for method in methods:
         if method not in METHODS:
@@ -152,10 +171,11 @@ def make_grid(
     if len(set(stems)) < len(stems):
         raise LolgpsError(f"--urdf files must have different names (cell folders), got {stems}")
     grid = [
-        Cell(m, u, s, seed)
+        Cell(m, u, s, seed, v)
         for m in dict.fromkeys(methods)
         for u in dict.fromkeys(urdfs)
         for s in dict.fromkeys(streams)
+        for v in dict.fromkeys(variants)
         for seed in seeds
     ]
     return tuple(grid)
@@ -222,6 +242,39 @@ def check_conditions(path: str | None) -> str | None:
     return os.path.abspath(path)
 
 
+def read_variants(path: str | None) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """The named run_stream flag sets of a ``--variants`` file (none for None): a non-empty
+    JSON object of names (letters, digits, ``_ . +``) to flag strings, none of which sets a
+    flag the sweep sets itself.
+
+    :param path: the file as typed, or None
+    """
+    if path is None:
+        return ()
+    try:
+        with open(path) as fh:
+            data = json.load(fh)
+    except OSError as exc:
+        raise LolgpsError(f"--variants {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise LolgpsError(f"--variants {path}: not JSON ({exc})") from None
+    if not isinstance(data, dict) or not data:
+        raise LolgpsError(f"--variants {path}: expected a JSON object of names to flags")
+    variants = []
+    for name, flags in data.items():
+        if not VARIANT_NAME.fullmatch(name):
+            raise LolgpsError(f"--variants {path}: name {name!r} may use only A-Z a-z 0-9 _ . +")
+        if not isinstance(flags, str):
+            raise LolgpsError(f"--variants {path}: {name}'s flags must be one string")
+        try:
+            split = tuple(shlex.split(flags))
+        except ValueError as exc:
+            raise LolgpsError(f"--variants {path}: {name}: {exc}") from None
+        check_flags(split, STREAM_FLAGS, "run_stream.py")
+        variants.append((name, split))
+    return tuple(variants)
+
+
 def check_out(path: str) -> str:
     """The absolute path of the sweep folder ``path``, created if missing, after checking that
     a file can be written in it. Call it last, once every other input has been checked.
@@ -273,7 +326,9 @@ def make_sweep(args: argparse.Namespace, extra: Sequence[str], scripts: str) -> 
     """
     seeds = parse_seeds(args.seeds)
     urdfs = [check_urdf(u) for u in args.urdf]
-    cells = make_grid(seeds, args.methods, urdfs, args.stream)
+    variants = read_variants(args.variants)
+    names = [name for name, _ in variants] or [""]
+    cells = make_grid(seeds, args.methods, urdfs, args.stream, names)
     try:
         evaluate_flags = shlex.split(args.evaluate_args or "")
     except ValueError as exc:
@@ -300,6 +355,7 @@ def make_sweep(args: argparse.Namespace, extra: Sequence[str], scripts: str) -> 
         evaluate=args.evaluate,
         stream_flags=tuple(extra),
         evaluate_flags=tuple(evaluate_flags),
+        variants=variants,
     )
     return Sweep(cells, plan, args.address, num_cpus)
 
@@ -323,6 +379,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--out", required=True, help="sweep folder: one subfolder per cell")
     parser.add_argument("--conditions", default=None, help="run_stream --conditions for all cells")
+    parser.add_argument(
+        "--variants",
+        default=None,
+        help='JSON file of named run_stream flag sets, {"name": "--flag value", ...}: '
+        "each cell runs once per variant",
+    )
     parser.add_argument(
         "--evaluate", action="store_true", help="evaluate each cell (evaluate.py --workers 1)"
     )

@@ -1,5 +1,5 @@
 """The aggregate over seeds of a sweep's finished cells (mean ± sd per method x arm x
-stream): summary.md, summary.csv and summary.png."""
+stream x variant): summary.md, summary.csv and summary.png."""
 
 from __future__ import annotations
 
@@ -82,24 +82,24 @@ def mean_sd(values: Sequence[float | None]) -> tuple[float | None, float | None,
 
 
 def aggregate(cells: Sequence[Cell], out: Path) -> list[dict[str, Any]]:
-    """One row per method x arm x stream, in grid order, over the seeds whose run finished:
-    ``seeds`` (their count) and ``<metric>_mean``, ``<metric>_sd``, ``<metric>_n`` for each of
+    """One row per method x arm x stream x variant, in grid order, over the seeds whose run
+    finished: ``seeds`` (their count) and ``<metric>_mean``, ``<metric>_sd``, ``<metric>_n`` for each of
     :data:`METRICS`. Groups without a finished run are left out.
 
     :param cells: the grid
     :param out: the sweep folder holding the cell folders
     """
-    groups: dict[tuple[str, str, str], list[dict[str, float | None]]] = {}
+    groups: dict[tuple[str, str, str, str], list[dict[str, float | None]]] = {}
     for cell in cells:
         found = cell_metrics(out / cell.name)
-        group = groups.setdefault((cell.method, cell.arm, cell.stream), [])
+        group = groups.setdefault((cell.method, cell.arm, cell.stream, cell.variant), [])
         if found is not None:
             group.append(found)
     rows = []
-    for (method, arm, stream), found_rows in groups.items():
+    for (method, arm, stream, variant), found_rows in groups.items():
         if not found_rows:
             continue
-        row: dict[str, Any] = {"method": method, "arm": arm, "stream": stream}
+        row: dict[str, Any] = {"method": method, "arm": arm, "stream": stream, "variant": variant}
         row["seeds"] = len(found_rows)
         for key, _, _ in METRICS:
             mean, sd, n = mean_sd([r[key] for r in found_rows])
@@ -128,10 +128,11 @@ def markdown_table(rows: Sequence[dict[str, Any]], failed: Sequence[Outcome]) ->
     :param rows: from :func:`aggregate`
     :param failed: the cells that failed in this sweep
     """
-    heads = ["method", "arm", "stream", "seeds", *(head for _, head, _ in METRICS)]
+    keys = ["method", "arm", "stream"] + (["variant"] if any(r["variant"] for r in rows) else [])
+    heads = [*keys, "seeds", *(head for _, head, _ in METRICS)]
     lines = ["| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
     for row in rows:
-        cells = [row["method"], row["arm"], row["stream"], str(row["seeds"])]
+        cells = [*(row[k] for k in keys), str(row["seeds"])]
         cells += [format_mean_sd(row[f"{k}_mean"], row[f"{k}_sd"], f) for k, _, f in METRICS]
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
@@ -148,12 +149,13 @@ def markdown_table(rows: Sequence[dict[str, Any]], failed: Sequence[Outcome]) ->
 
 
 def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
-    """The aggregate as CSV: method, arm, stream, seeds, then mean, sd and n per metric.
+    """The aggregate as CSV: method, arm, stream, variant, seeds, then mean, sd and n per
+    metric.
 
     :param path: the file
     :param rows: from :func:`aggregate`
     """
-    fields = ["method", "arm", "stream", "seeds"]
+    fields = ["method", "arm", "stream", "variant", "seeds"]
     fields += [f"{k}_{s}" for k, _, _ in METRICS for s in ("mean", "sd", "n")]
 
     def write(tmp: Path) -> None:
@@ -167,8 +169,8 @@ def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
 
 
 def plot_summary(path: Path, rows: Sequence[dict[str, Any]]) -> None:
-    """Bar charts of training success and rollouts per method x arm (x stream), with sd error
-    bars, saved to ``path``.
+    """Bar charts of training success and rollouts per method x arm (x stream x variant), with
+    sd error bars, saved to ``path``.
 
     :param path: the image file
     :param rows: from :func:`aggregate`
@@ -180,7 +182,9 @@ def plot_summary(path: Path, rows: Sequence[dict[str, Any]]) -> None:
 
     streams = {row["stream"] for row in rows}
     labels = [
-        f"{r['method']}\n{r['arm']}" + (f"\n{r['stream']}" if len(streams) > 1 else "")
+        f"{r['method']}\n{r['arm']}"
+        + (f"\n{r['stream']}" if len(streams) > 1 else "")
+        + (f"\n{r['variant']}" if r["variant"] else "")
         for r in rows
     ]
     fig, axes = plt.subplots(1, 2, figsize=(max(6.0, 1.6 * len(rows) + 2.0), 3.8))

@@ -1,0 +1,148 @@
+"""The robustness table: the stream on plants that depart from the URDF, per learner.
+
+    python scripts/research/plant_table.py variants [--plants P ...] [--priors L ...] > FILE
+    python scripts/sweep.py --seeds 0-2 --urdf robots/kuka_peg.urdf PANDA.urdf \\
+        --variants FILE --out DIR
+    python scripts/research/plant_table.py table DIR
+
+``variants`` prints a ``--variants`` file for ``scripts/sweep.py``: one flag set per plant
+(:data:`PLANTS`, the simulated arm's departure from the URDF, ``PlantConfig``) and learner
+(:data:`PRIORS`: the URDF's fixed model as the dynamics prior, the arm identified from its
+rollouts, or the sample-only GMM prior), named ``<plant>.<learner>``. ``table`` reads the
+finished cells of such a sweep and prints a markdown table, a row per arm, plant and learner:
+the positions the final policy inserts the peg at (per seed), the worst final distance of a
+local controller over the seeds, and the means over seeds of the rollouts, of the first
+iteration with a successful sample (over the conditions) and of the S-step's repair rounds;
+with ``--identify``, the payload identified after the first condition and its one-step
+error over the true arm's model's (``metrics.jsonl``, event ``identified``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+from lolgps_torch.cli import run
+from lolgps_torch.data.run_folder import RunFolder, read_json
+from lolgps_torch.errors import LolgpsError
+
+# name: (label, run_stream flags)
+PLANTS = {
+    "urdf": ("the URDF", ""),
+    "inertia": ("inertia ±30 %", "--plant-inertia-scale 0.3 --plant-seed 1"),
+    "payload": ("+1 kg, compensated by the URDF", "--payload 1 --gravity-compensation model"),
+    "nocomp": ("no gravity compensation", "--gravity-compensation none"),
+    "noise": ("sensor noise 1 mrad", "--obs-noise 0.001"),
+    "late10": ("commands 10 ms late", "--action-delay 0.01"),
+    "late50": ("commands 50 ms late", "--action-delay 0.05"),
+}
+PRIORS = {
+    "model": ("URDF model", ""),
+    "identified": ("identified", "--identify"),
+    "gmm": ("GMM", "--dynamics-prior gmm"),
+}
+
+
+def variants(plants: list[str], priors: list[str]) -> dict[str, str]:
+    """The ``--variants`` object: ``<plant>.<prior>`` to its run_stream flags."""
+    return {
+        f"{plant}.{prior}": f"{PLANTS[plant][1]} {PRIORS[prior][1]}".strip()
+        for plant in plants
+        for prior in priors
+    }
+
+
+def identified_after_first(folder: Path) -> tuple[float, float] | None:
+    """The payload identified after the first condition and its one-step error over the true
+    arm's model's, None if the run did not identify."""
+    path = RunFolder(folder).metrics_path
+    if not path.is_file():
+        return None
+    for line in path.read_text().splitlines():
+        record = json.loads(line)
+        if record.get("event") == "identified" and record["condition"] == 1:
+            plant = record.get("error_plant", math.nan) or math.nan
+            return float(record["payload"]), float(record["error_identified"]) / plant
+    return None
+
+
+def cell_row(folder: Path) -> dict[str, Any] | None:
+    """One finished run's numbers, None if it has not finished."""
+    run_folder = RunFolder(folder)
+    if not run_folder.summary_path.is_file():
+        return None
+    entries = run_folder.read_summary()["conditions"]
+    firsts = [e["first_success_iteration"] for e in entries]
+    return {
+        "positions": sum(bool(e["policy_success_end"]) for e in entries),
+        "conditions": len(entries),
+        "worst": max(float(e["local_final_distance"]) for e in entries),
+        "rollouts": sum(int(e["rollouts"]) for e in entries),
+        "first": statistics.fmean(math.inf if f is None else f for f in firsts),
+        "repairs": sum(int(e.get("repairs") or 0) for e in entries),
+        "identified": identified_after_first(folder),
+    }
+
+
+def table(out: Path) -> str:
+    """The markdown table of the sweep in ``out`` (its sweep.json's cells)."""
+    sweep = read_json(out / "sweep.json")
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for cell in sweep["cells"]:
+        plant, _, prior = cell["variant"].partition(".")
+        if plant not in PLANTS or prior not in PRIORS:
+            raise LolgpsError(f"{out}: variant {cell['variant']!r} is not <plant>.<prior>")
+        row = cell_row(out / cell["name"])
+        group = groups.setdefault((cell["arm"], cell["variant"]), [])
+        if row is not None:
+            group.append(row)
+    lines = [
+        "| arm | plant | learner | seeds | positions | worst p_cur (m) | rollouts | "
+        "first success (iteration) | repair rounds | payload after condition 1 (kg), error |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for (arm, variant), rows in groups.items():
+        if not rows:
+            continue
+        plant, _, prior = variant.partition(".")
+        identified = [r["identified"] for r in rows if r["identified"] is not None]
+        found = ", ".join(f"{p:.3f}, {e:.2f}×" for p, e in identified) or "–"
+        positions = ", ".join(f"{r['positions']}/{r['conditions']}" for r in rows)
+        lines.append(
+            f"| {arm} | {PLANTS[plant][0]} | {PRIORS[prior][0]} | {len(rows)} | {positions} | "
+            f"{max(r['worst'] for r in rows):.3f} | "
+            f"{statistics.fmean(r['rollouts'] for r in rows):.0f} | "
+            f"{statistics.fmean(r['first'] for r in rows):.1f} | "
+            f"{statistics.fmean(r['repairs'] for r in rows):.1f} | {found} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    write = commands.add_parser("variants", help="print a sweep --variants file")
+    write.add_argument("--plants", nargs="+", choices=list(PLANTS), default=list(PLANTS))
+    write.add_argument("--priors", nargs="+", choices=list(PRIORS), default=list(PRIORS))
+    read = commands.add_parser("table", help="the markdown table of a finished sweep")
+    read.add_argument("out", help="the sweep folder (holding sweep.json)")
+    args = parser.parse_args()
+    if args.command == "variants":
+        json.dump(variants(args.plants, args.priors), sys.stdout, indent=1)
+        print()
+        return
+    out = Path(args.out)
+    if not (out / "sweep.json").is_file():
+        raise LolgpsError(f"{out}: no sweep.json (not a sweep folder)")
+    print(table(out), end="")
+
+
+if __name__ == "__main__":
+    run(main)
