@@ -3,13 +3,13 @@
     python scripts/research/plant_table.py variants [--plants P ...] [--priors L ...] > FILE
     python scripts/sweep.py --seeds 0-2 --urdf robots/kuka_peg.urdf PANDA.urdf \\
         --variants FILE --out DIR
-    python scripts/research/plant_table.py table DIR
+    python scripts/research/plant_table.py table DIR [DIR ...]
 
 ``variants`` prints a ``--variants`` file for ``scripts/sweep.py``: one flag set per plant
 (:data:`PLANTS`, the simulated arm's departure from the URDF, ``PlantConfig``) and learner
 (:data:`PRIORS`: the URDF's fixed model as the dynamics prior, the arm identified from its
 rollouts, or the sample-only GMM prior), named ``<plant>.<learner>``. ``table`` reads the
-finished cells of such a sweep and prints a markdown table, a row per arm, plant and learner:
+finished cells of such sweeps (merged, a cell's seeds from every folder) and prints a markdown table, a row per arm, plant and learner:
 the positions the final policy inserts the peg at (per seed), the worst final distance of a
 local controller over the seeds, and the means over seeds of the rollouts, of the first
 iteration with a successful sample (over the conditions) and of the S-step's repair rounds;
@@ -89,18 +89,20 @@ def cell_row(folder: Path) -> dict[str, Any] | None:
     }
 
 
-def table(out: Path) -> str:
-    """The markdown table of the sweep in ``out`` (its sweep.json's cells)."""
-    sweep = read_json(out / "sweep.json")
+def table(folders: list[Path]) -> str:
+    """The markdown table of the sweeps in ``folders`` (their sweep.json's cells)."""
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
-    for cell in sweep["cells"]:
-        plant, _, prior = cell["variant"].partition(".")
-        if plant not in PLANTS or prior not in PRIORS:
-            raise LolgpsError(f"{out}: variant {cell['variant']!r} is not <plant>.<prior>")
-        row = cell_row(out / cell["name"])
-        group = groups.setdefault((cell["arm"], cell["variant"]), [])
-        if row is not None:
-            group.append(row)
+    for out in folders:
+        if not (out / "sweep.json").is_file():
+            raise LolgpsError(f"{out}: no sweep.json (not a sweep folder)")
+        for cell in read_json(out / "sweep.json")["cells"]:
+            plant, _, prior = cell["variant"].partition(".")
+            if plant not in PLANTS or prior not in PRIORS:
+                raise LolgpsError(f"{out}: variant {cell['variant']!r} is not <plant>.<prior>")
+            row = cell_row(out / cell["name"])
+            group = groups.setdefault((cell["arm"], cell["variant"]), [])
+            if row is not None:
+                group.append(row)
     lines = [
         "| arm | plant | learner | seeds | positions | worst p_cur (m) | rollouts | "
         "first success (iteration) | repair rounds | payload after condition 1 (kg), error |",
@@ -132,16 +134,13 @@ def main() -> None:
     write.add_argument("--plants", nargs="+", choices=list(PLANTS), default=list(PLANTS))
     write.add_argument("--priors", nargs="+", choices=list(PRIORS), default=list(PRIORS))
     read = commands.add_parser("table", help="the markdown table of a finished sweep")
-    read.add_argument("out", help="the sweep folder (holding sweep.json)")
+    read.add_argument("out", nargs="+", help="sweep folders (holding sweep.json)")
     args = parser.parse_args()
     if args.command == "variants":
         json.dump(variants(args.plants, args.priors), sys.stdout, indent=1)
         print()
         return
-    out = Path(args.out)
-    if not (out / "sweep.json").is_file():
-        raise LolgpsError(f"{out}: no sweep.json (not a sweep folder)")
-    print(table(out), end="")
+    print(table([Path(out) for out in args.out]), end="")
 
 
 if __name__ == "__main__":
