@@ -67,11 +67,6 @@ class Guard(NamedTuple):
         nan = torch.full((2,), float("nan"), dtype=torch.float64, device=device)
         return cls(inf, inf[None].clone(), torch.zeros_like(inf[0]), inf[0].clone(), nan)
 
-    @property
-    def hovers(self) -> bool:
-        """Whether the brake steers the peg above its target rather than stopping it."""
-        return bool(self.hover.isfinite().all())
-
     def speed_at(self, t: int) -> Tensor:
         """The trip speeds at step ``t``, ``[dU]``."""
         return self.speed[min(t, self.speed.shape[0] - 1)]
@@ -159,14 +154,10 @@ def guarded(
     retreating = distance - closest > guard.retreat
     braking = (qd.abs() > guard.speed_at(t)).any(-1) | retreating
     held = u
-    if not guard.hovers:
-        if bool(braking.any()):
-            held = u.clone()
-            held[braking] = -guard.brake * stopping(x[braking])
-        return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest, steering
     tip = x[..., layout.points.start : layout.points.start + 3].clone()
     tip[..., 2] -= guard.hover[0]
-    above = distance > guard.hover[0]  # further from the target than the hover point is
+    # further from the target than the hover point is (never without the hover: h is NaN)
+    above = distance > guard.hover[0]
     away = torch.linalg.vector_norm(tip, dim=-1) > HOVER_RELEASE
     steered = (retreating | (steering & away)) & above
     stopped = braking & ~steered

@@ -3,6 +3,7 @@
     python scripts/research/identify_noise.py [--urdf URDF] [--payload KG]
         [--obs-noise 0 0.001] [--noise-rounds 0 1] [--residual torque speed] [--iterations 3]
         [--action-delay SECONDS [--detect-delay]] [--gravity-compensation plant] [--seed S]
+        [--plant-inertia-scale S --plant-seed K]
 
 For each sensor noise (rad; the joint velocities get 10 times as much) the arm carries
 ``--payload`` kg that its URDF lacks, compensated by the URDF's gravity alone
@@ -16,7 +17,11 @@ Each line gives the identified payload, the gravity compensation's gain κ and i
 share ρ (truth: the payload, 1, and 0 for ``model`` or 1 for ``plant``) and the one-step joint-speed error (rad/s) of
 the identified model, of the URDF's and of the simulated arm's own
 (:meth:`lolgps_torch.task.PegTask.plant_model`) on a second condition's first rollouts (a hole
-0.04 m away), which the identification has not seen, and the identification's wall time.
+0.04 m away), which the identification has not seen, and the identification's wall time. With
+``--plant-inertia-scale`` every link's mass and inertia are scaled too (``PlantConfig``), and
+each line also gives the mass of the last moving body, the links after the last joint with the
+payload, as identified and as simulated (kg): what the transitions fix where the payload and
+those links' scales can trade.
 
 With ``--action-delay`` the arm's commands act that late, and the learner allows for that
 delay as the stream's ``--known-delay`` makes it (:func:`lolgps_torch.cli.allow_for_delay`: the
@@ -36,10 +41,12 @@ import time
 from dataclasses import replace
 
 from lolgps_torch.cli import allow_for_delay, detect_delay, run
-from lolgps_torch.dynamics.identify import IdentifyConfig
+from lolgps_torch.dynamics.identify import ArmParameters, IdentifyConfig, identified_dynamics
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.plant import PlantConfig
-from lolgps_torch.task import PegTask, TaskConfig
+from lolgps_torch.sim.world import PegWorld
+from lolgps_torch.task import PegTask, TaskConfig, probe_world
 
 
 def parse_args() -> argparse.Namespace:
@@ -65,21 +72,35 @@ def parse_args() -> argparse.Namespace:
         help="the arm compensated by the URDF's gravity or by its own (%(default)s)",
     )  # fmt: skip
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--plant-inertia-scale", type=float, default=0.0, help="S, links × [1±S]")
+    parser.add_argument("--plant-seed", type=int, default=0, help="the links' factors' seed")
     return parser.parse_args()
+
+
+def last_body_masses(task: PegTask, found: ArmParameters) -> tuple[float, float]:
+    """The last moving body's mass (kg), payload included, as identified and as simulated."""
+    urdf = ControlStep(task.arm, task.config.world, task.device).urdf
+    with probe_world(task.config) as (world, _):
+        assert isinstance(world, PegWorld)
+        simulated = replace(task.arm, urdf_text=world.plant_urdf())
+    true = ControlStep(simulated, task.config.world, task.device).urdf
+    return float(identified_dynamics(urdf, found).body.mass[-1]), float(true.body.mass[-1])
 
 
 def main() -> None:
     args = parse_args()
     print(
-        "| sensor noise (rad) | delay allowed for (s) | residual | noise rounds | payload (kg) | κ | ρ | one-step error: identified / URDF / simulated arm's own (rad/s) | identification (s) |"
+        "| sensor noise (rad) | delay allowed for (s) | residual | noise rounds | payload (kg) | κ | ρ | one-step error: identified / URDF / simulated arm's own (rad/s) | last body, identified / simulated (kg) | identification (s) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for noise in args.obs_noise:
         plant = PlantConfig(
             payload=args.payload,
             gravity_compensation=args.gravity_compensation,
             obs_noise=noise,
             action_delay=args.action_delay,
+            inertia_scale=args.plant_inertia_scale,
+            seed=args.plant_seed,
         )
         task_config = TaskConfig(urdf=args.urdf, plant=plant)
         config = LocalConfig(identify=True)
@@ -103,10 +124,12 @@ def main() -> None:
                     seconds = time.perf_counter() - start
                     assert found is not None
                     identified, urdf, own, _ = task.one_step_errors(unseen)
+                    mass, true_mass = last_body_masses(task, found)
                     print(
                         f"| {noise:g} | {delay:g} | {residual} | {rounds} | {float(found.payload):.3f} | "
                         f"{float(found.compensation):.3f} | {float(found.own):.2f} | "
-                        f"{identified:.4f} / {urdf:.4f} / {own:.4f} | {seconds:.1f} |"
+                        f"{identified:.4f} / {urdf:.4f} / {own:.4f} | "
+                        f"{mass:.3f} / {true_mass:.3f} | {seconds:.1f} |"
                     )
         finally:
             task.close()
