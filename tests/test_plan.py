@@ -18,6 +18,7 @@ from lolgps_torch.errors import NumericalError
 from lolgps_torch.lolgps import local
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.simulator import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.trajopt import CStepConfig, plan_on_model
 from lolgps_torch.types import LinearDynamics, LinearGaussian, QuadraticCost, StepLinearizer
@@ -209,3 +210,30 @@ def test_a_plan_that_fails_numerically_starts_from_the_hold_with_a_warning(
     finally:
         task.close()
     assert torch.equal(learner.p_cur.k, hold.k) and learner.start_cost == float("inf")
+
+
+def test_a_planned_start_worse_than_holding_still_is_dropped_for_the_hold() -> None:
+    """A model that allows for a command delay the arm does not have (10 ms) plans a first
+    controller that flings the KUKA (its samples end about 0.9 m from the hole): their mean
+    cost is above the hold's predicted cost, so the learner warns, takes no fit or C-step from
+    them, and the hold acts next, its samples measuring the start cost; from there the
+    condition is learnt."""
+    task = PegTask(
+        TaskConfig(urdf="robots/kuka_peg.urdf", world=WorldConfig(known_delay=0.01)), n_worlds=5
+    )
+    try:
+        learner = LocalLearner(task, (-0.02, -0.02), LocalConfig(), seed=0)
+        predicted = learner.start_cost
+        with pytest.warns(UserWarning, match="did worse than holding the start pose"):
+            flung, p_pre, record = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
+        assert float(flung.cost.sum(1).mean()) > predicted and p_pre is None
+        assert learner.p_cur is learner.hold and learner.accepted is None
+        assert record.eta == 0.0 and record.time_fit == 0.0
+        held, _, _ = iterate(learner, learner.p_cur, None, False, (0, 1, 0.0))
+        assert learner.start_cost == pytest.approx(float(held.cost.sum(1).mean()))
+        assert learner.start_cost < float(flung.cost.sum(1).mean()) / 10
+        for i in range(2, 7):
+            samples, _, _ = iterate(learner, learner.p_cur, None, False, (0, i, 0.0))
+    finally:
+        task.close()
+    assert bool(samples.success.any())

@@ -16,7 +16,8 @@ diverged; the hold's cost is the first iteration's mean, or the model's predicti
 first controller is planned on the model): p_cur returns to the controller that drew the
 accepted samples and the C-step is taken again from the accepted fit with the step size at
 most halved (a line search on epsilon). A step taken at the smallest multiplier is accepted: its
-samples re-measure the cost.
+samples re-measure the cost. A first controller planned on the model whose samples cost more on
+average than the hold is predicted to is dropped before any fit: the hold acts next.
 """
 
 from __future__ import annotations
@@ -243,8 +244,9 @@ class LocalLearner:
         self.task, self.offset, self.config = task, offset, config
         self.generator = torch.Generator().manual_seed(seed)
         self.targets = task.targets([offset])[0]
-        self.p_cur = initial_controller(task, config)
+        self.hold = self.p_cur = initial_controller(task, config)
         self.start_cost = math.inf  # the hold's mean total cost, measured by the first samples
+        self.planned = False  # whether p_cur is still the controller planned on the model
         model = config.dynamics.prior == "model"
         self.identified = (
             task.identify_model(IdentifyConfig()) if model and config.identify else None
@@ -255,6 +257,7 @@ class LocalLearner:
         if model and config.model_plans > 0:
             try:
                 self.p_cur, self.start_cost = planner(task, self.targets, self.p_cur, config)
+                self.planned = True
             except NumericalError as error:  # the hold is a safe start: learn from it
                 warnings.warn(
                     f"hole {offset}: the first controller could not be planned on the arm's "
@@ -280,6 +283,26 @@ class LocalLearner:
                 self.identified = None
             self.task.record(samples)
         return samples
+
+    def planned_start_diverged(self, samples: Trajectories) -> bool:
+        """Whether ``samples`` of the controller planned on the model cost more on average than
+        holding the start pose is predicted to (a model wrong enough to mislead the plan, e.g.
+        one that allows for a command delay the arm does not have); if so, p_cur becomes the
+        hold, whose first samples then measure the start cost, as without a plan."""
+        if not self.planned or self.accepted is not None:
+            return False
+        self.planned = False
+        cost = float(samples.cost.sum(1).mean())
+        if cost <= self.start_cost:
+            return False
+        warnings.warn(
+            f"hole {self.offset}: the controller planned on the arm's model did worse than "
+            f"holding the start pose (cost {cost:.1f} > {self.start_cost:.1f}); starting from "
+            "the hold",
+            stacklevel=2,
+        )
+        self.p_cur, self.start_cost = self.hold, math.inf
+        return True
 
     def fit(self, p_act: LinearGaussian, samples: Trajectories) -> Fit:
         """Dynamics and cost expansion around the new samples; adapts the step size.
@@ -347,6 +370,10 @@ def iterate(
     t0 = time.perf_counter()
     samples = learner.sample(p_act)
     t1 = time.perf_counter()
+    if learner.planned_start_diverged(samples):  # no fit or C-step: the hold acts next
+        times = (t1 - t0, 0.0, learner.plan_time)
+        record = iteration_record(where, samples, (0.0, 0.0, 0.0), learner.step_mult, times)
+        return samples, None, record
     fit = learner.fit(p_act, samples)
     assert learner.accepted is not None  # fit accepts the first iteration
     p_pre = linearize(learner.accepted.x) if linearize is not None else None
