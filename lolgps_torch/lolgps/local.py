@@ -16,8 +16,8 @@ diverged; the hold's cost is the first iteration's mean, or the model's predicti
 first controller is planned on the model): p_cur returns to the controller that drew the
 accepted samples and the C-step is taken again from the accepted fit with the step size at
 most halved (a line search on epsilon). A step taken at the smallest multiplier is accepted: its
-samples re-measure the cost. A first controller planned on the model whose samples cost more on
-average than the hold is predicted to is dropped before any fit: the hold acts next.
+samples re-measure the cost. A first controller planned on the model whose samples all cost more
+than the hold is predicted to is dropped before any fit: the hold acts next.
 """
 
 from __future__ import annotations
@@ -285,20 +285,20 @@ class LocalLearner:
         return samples
 
     def planned_start_diverged(self, samples: Trajectories) -> bool:
-        """Whether ``samples`` of the controller planned on the model cost more on average than
-        holding the start pose is predicted to (a model wrong enough to mislead the plan, e.g.
-        one that allows for a command delay the arm does not have); if so, p_cur becomes the
-        hold, whose first samples then measure the start cost, as without a plan."""
+        """Whether every one of ``samples`` of the controller planned on the model cost more
+        than holding the start pose is predicted to (a model wrong enough to mislead the plan,
+        e.g. one that allows for a command delay the arm does not have); if so, p_cur becomes
+        the hold, whose first samples then measure the start cost, as without a plan."""
         if not self.planned or self.accepted is not None:
             return False
         self.planned = False
-        cost = float(samples.cost.sum(1).mean())
+        cost = float(samples.cost.sum(1).min())
         if cost <= self.start_cost:
             return False
         warnings.warn(
-            f"hole {self.offset}: the controller planned on the arm's model did worse than "
-            f"holding the start pose (cost {cost:.1f} > {self.start_cost:.1f}); starting from "
-            "the hold",
+            f"hole {self.offset}: every sample of the controller planned on the arm's model did "
+            f"worse than holding the start pose (the best cost {cost:.1f} > {self.start_cost:.1f});"
+            " starting from the hold",
             stacklevel=2,
         )
         self.p_cur, self.start_cost = self.hold, math.inf
