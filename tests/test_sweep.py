@@ -348,3 +348,60 @@ def test_variants_are_aggregated_apart(tmp_path: Path) -> None:
     markdown = (out / "summary.md").read_text()
     assert "| method | arm | stream | variant | seeds |" in markdown
     assert "| lolgps | kuka | paper | b | 1 | 0.50 |" in markdown
+
+
+def test_the_plant_table_reads_a_sweep_of_plants_and_learners(
+    tmp_path: Path, run_script: Callable[..., Any]
+) -> None:
+    """scripts/research/plant_table.py: its variants are ``<plant>.<learner>`` flag sets a sweep
+    accepts, and its table gives per arm, plant and learner the positions per seed, the worst
+    local controller, the means of rollouts, first success and repair rounds, and the payload
+    identified after the first condition with its error over the true arm's."""
+    script = "scripts/research/plant_table.py"
+    listed = run_script(script, "variants", "--plants", "urdf", "payload")
+    variants = json.loads(listed.out)
+    assert variants == {
+        "urdf.model": "",
+        "urdf.identified": "--identify",
+        "urdf.gmm": "--dynamics-prior gmm",
+        "payload.model": "--payload 1 --gravity-compensation model",
+        "payload.identified": "--payload 1 --gravity-compensation model --identify",
+        "payload.gmm": "--payload 1 --gravity-compensation model --dynamics-prior gmm",
+    }
+    path = tmp_path / "variants.json"
+    path.write_text(listed.out)
+    s = _sweep(tmp_path, "--seeds", "0-1", "--variants", str(path))
+    assert len(s.cells) == 12
+    out = Path(s.plan.out)
+    cells = [
+        {"name": c.name, "arm": c.arm, "variant": c.variant}
+        for c in s.cells
+        if c.variant in ("urdf.model", "payload.identified")
+    ]
+    (out / "sweep.json").write_text(json.dumps({"cells": cells}))
+
+    def finished(name: str, positions: list[bool], worst: float, identified: float | None) -> None:
+        entries = [
+            {"policy_success_end": ok, "local_final_distance": worst / (c + 1), "rollouts": 10,
+             "first_success_iteration": c, "repairs": 2}
+            for c, ok in enumerate(positions)
+        ]  # fmt: skip
+        (out / name).mkdir()
+        (out / name / "summary.json").write_text(json.dumps({"conditions": entries}))
+        if identified is None:
+            return
+        record = {"event": "identified", "condition": 1, "payload": identified,
+                  "error_identified": 0.03, "error_plant": 0.02}  # fmt: skip
+        (out / name / "metrics.jsonl").write_text(json.dumps(record) + "\n")
+
+    finished("lolgps-kuka_peg-paper-urdf.model-seed0", [True, True], 0.002, None)
+    finished("lolgps-kuka_peg-paper-payload.identified-seed0", [True, False], 0.004, 0.98)
+    finished("lolgps-kuka_peg-paper-payload.identified-seed1", [True, True], 0.010, 1.01)
+    table = run_script(script, "table", str(out)).out.splitlines()
+    assert table[2] == "| kuka_peg | the URDF | URDF model | 1 | 2/2 | 0.002 | 20 | 0.5 | 4.0 | – |"
+    assert table[3] == (
+        "| kuka_peg | +1 kg, compensated by the URDF | identified | 2 | 1/2, 2/2 | 0.010 | 20 | "
+        "0.5 | 4.0 | 0.980, 1.50×; 1.010, 1.50× |"
+    )
+    assert len(table) == 4  # cells without a finished run are left out
+    assert run_script(script, "table", str(tmp_path)).code == 2

@@ -113,7 +113,7 @@ def table(folders: list[Path]) -> str:
             continue
         plant, _, prior = variant.partition(".")
         identified = [r["identified"] for r in rows if r["identified"] is not None]
-        found = ", ".join(f"{p:.3f}, {e:.2f}×" for p, e in identified) or "–"
+        found = "; ".join(f"{p:.3f}, {e:.2f}×" for p, e in identified) or "–"
         positions = ", ".join(f"{r['positions']}/{r['conditions']}" for r in rows)
         lines.append(
             f"| {arm} | {PLANTS[plant][0]} | {PRIORS[prior][0]} | {len(rows)} | {positions} | "
