@@ -177,6 +177,9 @@ def main() -> None:
         clock.lap("other")
         pred, act = shadow.improvements(p_act, samples)
         clock.lap("trace only")
+        if learner.planned_start_diverged(samples):  # as iterate(): the hold acts next
+            print(f"{i:3d} {float(samples.cost.sum(1).mean()):8.2f}  the plan dropped for the hold")
+            continue
         fit = learner.fit(p_act, samples)
         clock.lap("fit()")
         if policy is not None:
