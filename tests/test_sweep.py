@@ -356,7 +356,8 @@ def test_the_plant_table_reads_a_sweep_of_plants_and_learners(
     """scripts/research/plant_table.py: its variants are ``<plant>.<learner>`` flag sets a sweep
     accepts, and its table gives per arm, plant and learner the positions per seed, the worst
     local controller, the means of rollouts, first success and repair rounds, and the payload
-    identified after the first condition with its error over the true arm's."""
+    identified after the first condition with the one-step errors of its model and the true
+    arm's."""
     script = "scripts/research/plant_table.py"
     listed = run_script(script, "variants", "--plants", "urdf", "payload")
     variants = json.loads(listed.out)
@@ -401,7 +402,7 @@ def test_the_plant_table_reads_a_sweep_of_plants_and_learners(
     assert table[2] == "| kuka_peg | the URDF | URDF model | 1 | 2/2 | 0.002 | 20 | 0.5 | 4.0 | – |"
     assert table[3] == (
         "| kuka_peg | +1 kg, compensated by the URDF | identified | 2 | 1/2, 2/2 | 0.010 | 20 | "
-        "0.5 | 4.0 | 0.980, 1.50×; 1.010, 1.50× |"
+        "0.5 | 4.0 | 0.980, 0.0300 / 0.0200; 1.010, 0.0300 / 0.0200 |"
     )
     assert len(table) == 4  # cells without a finished run are left out
     assert run_script(script, "table", str(tmp_path)).code == 2

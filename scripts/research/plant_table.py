@@ -13,8 +13,9 @@ finished cells of such sweeps (merged, a cell's seeds from every folder) and pri
 the positions the final policy inserts the peg at (per seed), the worst final distance of a
 local controller over the seeds, and the means over seeds of the rollouts, of the first
 iteration with a successful sample (over the conditions) and of the S-step's repair rounds;
-with ``--identify``, the payload identified after the first condition and its one-step
-error over the true arm's model's (``metrics.jsonl``, event ``identified``).
+with ``--identify``, the payload identified after the first condition and the one-step
+joint-speed errors of the identified model and of the true arm's on the second condition's
+first rollouts (``metrics.jsonl``, event ``identified``).
 """
 
 from __future__ import annotations
@@ -57,17 +58,21 @@ def variants(plants: list[str], priors: list[str]) -> dict[str, str]:
     }
 
 
-def identified_after_first(folder: Path) -> tuple[float, float] | None:
-    """The payload identified after the first condition and its one-step error over the true
-    arm's model's, None if the run did not identify."""
+def identified_after_first(folder: Path) -> tuple[float, float, float] | None:
+    """The payload identified after the first condition and the one-step errors (rad/s) of the
+    identified model and of the true arm's, None if the run did not identify."""
     path = RunFolder(folder).metrics_path
     if not path.is_file():
         return None
     for line in path.read_text().splitlines():
         record = json.loads(line)
         if record.get("event") == "identified" and record["condition"] == 1:
-            plant = record.get("error_plant", math.nan) or math.nan
-            return float(record["payload"]), float(record["error_identified"]) / plant
+            plant = record.get("error_plant")
+            return (
+                float(record["payload"]),
+                float(record["error_identified"]),
+                math.nan if plant is None else float(plant),
+            )
     return None
 
 
@@ -105,7 +110,8 @@ def table(folders: list[Path]) -> str:
                 group.append(row)
     lines = [
         "| arm | plant | learner | seeds | positions | worst p_cur (m) | rollouts | "
-        "first success (iteration) | repair rounds | payload after condition 1 (kg), error |",
+        "first success (iteration) | repair rounds | after condition 1: payload (kg), "
+        "one-step error identified / true arm's (rad/s) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (arm, variant), rows in groups.items():
@@ -113,7 +119,7 @@ def table(folders: list[Path]) -> str:
             continue
         plant, _, prior = variant.partition(".")
         identified = [r["identified"] for r in rows if r["identified"] is not None]
-        found = "; ".join(f"{p:.3f}, {e:.2f}×" for p, e in identified) or "–"
+        found = "; ".join(f"{p:.3f}, {e:.4f} / {t:.4f}" for p, e, t in identified) or "–"
         positions = ", ".join(f"{r['positions']}/{r['conditions']}" for r in rows)
         lines.append(
             f"| {arm} | {PLANTS[plant][0]} | {PRIORS[prior][0]} | {len(rows)} | {positions} | "
