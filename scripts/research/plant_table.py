@@ -9,9 +9,10 @@
 (:data:`PLANTS`, the simulated arm's departure from the URDF, ``PlantConfig``) and learner
 (:data:`PRIORS`: the URDF's fixed model as the dynamics prior, the arm identified from its
 rollouts, or the sample-only GMM prior), named ``<plant>.<learner>``. ``table`` reads the
-finished cells of such sweeps (merged, a cell's seeds from every folder) and prints a markdown table, a row per arm, plant and learner:
-the positions the final policy inserts the peg at (per seed), the worst final distance of a
-local controller over the seeds, and the means over seeds of the rollouts, of the first
+finished cells of such sweeps (merged, a cell's seeds from every folder) and prints a
+markdown table, a row per arm, plant and learner (in that order): the positions the final
+policy inserts the peg at (per seed), the worst final distance of a local controller over the
+seeds, and the means over seeds of the rollouts, of the first
 iteration with a successful sample (over the conditions) and of the S-step's repair rounds;
 with ``--identify``, the payload identified after the first condition and the one-step
 joint-speed errors of the identified model and of the true arm's on the second condition's
@@ -114,7 +115,13 @@ def table(folders: list[Path]) -> str:
         "one-step error identified / true arm's (rad/s) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for (arm, variant), rows in groups.items():
+    arms = list(dict.fromkeys(arm for arm, _ in groups))
+
+    def order(key: tuple[str, str]) -> tuple[int, int, int]:
+        plant, _, prior = key[1].partition(".")
+        return arms.index(key[0]), list(PLANTS).index(plant), list(PRIORS).index(prior)
+
+    for (arm, variant), rows in sorted(groups.items(), key=lambda item: order(item[0])):
         if not rows:
             continue
         plant, _, prior = variant.partition(".")
