@@ -375,7 +375,7 @@ def test_the_plant_table_reads_a_sweep_of_plants_and_learners(
     assert len(s.cells) == 12
     out = Path(s.plan.out)
     cells = [
-        {"name": c.name, "arm": c.arm, "variant": c.variant}
+        {"name": c.name, "arm": c.arm, "variant": c.variant, "seed": c.seed}
         for c in s.cells
         if c.variant in ("urdf.model", "payload.identified")
     ]
@@ -405,4 +405,5 @@ def test_the_plant_table_reads_a_sweep_of_plants_and_learners(
         "0.5 | 4.0 | 0.980, 0.0300 / 0.0200; 1.010, 0.0300 / 0.0200 |"
     )
     assert len(table) == 4  # cells without a finished run are left out
+    assert run_script(script, "table", str(out), str(out)).out.splitlines() == table  # once
     assert run_script(script, "table", str(tmp_path)).code == 2

@@ -9,7 +9,7 @@
 (:data:`PLANTS`, the simulated arm's departure from the URDF, ``PlantConfig``) and learner
 (:data:`PRIORS`: the URDF's fixed model as the dynamics prior, the arm identified from its
 rollouts, or the sample-only GMM prior), named ``<plant>.<learner>``. ``table`` reads the
-finished cells of such sweeps (merged, a cell's seeds from every folder) and prints a
+finished cells of such sweeps (merged: a seed's run counted once) and prints a
 markdown table, a row per arm, plant and learner (in that order): the positions the final
 policy inserts the peg at (per seed), the worst final distance of a local controller over the
 seeds, and the means over seeds of the rollouts, of the first
@@ -97,7 +97,7 @@ def cell_row(folder: Path) -> dict[str, Any] | None:
 
 def table(folders: list[Path]) -> str:
     """The markdown table of the sweeps in ``folders`` (their sweep.json's cells)."""
-    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    groups: dict[tuple[str, str], dict[int, dict[str, Any]]] = {}  # a run per seed
     for out in folders:
         if not (out / "sweep.json").is_file():
             raise LolgpsError(f"{out}: no sweep.json (not a sweep folder)")
@@ -106,9 +106,9 @@ def table(folders: list[Path]) -> str:
             if plant not in PLANTS or prior not in PRIORS:
                 raise LolgpsError(f"{out}: variant {cell['variant']!r} is not <plant>.<prior>")
             row = cell_row(out / cell["name"])
-            group = groups.setdefault((cell["arm"], cell["variant"]), [])
+            group = groups.setdefault((cell["arm"], cell["variant"]), {})
             if row is not None:
-                group.append(row)
+                group.setdefault(int(cell["seed"]), row)  # a seed in two folders counts once
     lines = [
         "| arm | plant | learner | seeds | positions | worst p_cur (m) | rollouts | "
         "first success (iteration) | repair rounds | after condition 1: payload (kg), "
@@ -121,7 +121,8 @@ def table(folders: list[Path]) -> str:
         plant, _, prior = key[1].partition(".")
         return arms.index(key[0]), list(PLANTS).index(plant), list(PRIORS).index(prior)
 
-    for (arm, variant), rows in sorted(groups.items(), key=lambda item: order(item[0])):
+    for (arm, variant), seeds in sorted(groups.items(), key=lambda item: order(item[0])):
+        rows = [seeds[seed] for seed in sorted(seeds)]
         if not rows:
             continue
         plant, _, prior = variant.partition(".")
