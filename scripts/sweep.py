@@ -8,9 +8,9 @@ aggregate it.
 
 One folder per cell under --out (``<method>-<urdf stem>-<stream>[-<variant>]-seed<S>``; a
 ``--variants`` file names run_stream flag sets, ``{"gmm": "--dynamics-prior gmm", ...}``, and
-each cell runs once per set), each a complete
-run_stream run (with eval.json when --evaluate); sweep.json records the grid, and summary.md,
-summary.csv and summary.png aggregate the seeds (mean ± sd). Without --address a local Ray
+each cell runs once per set), each a complete run_stream run (with eval.json when
+--evaluate); sweep.json records the grid, and summary.md, summary.csv and summary.png
+aggregate the seeds (mean ± sd). Without --address a local Ray
 instance with --num-cpus CPUs (default: all) runs the cells, one CPU each; --address auto
 joins a running cluster. Rerunning the same command skips finished cells and resumes
 interrupted ones. A failed cell is retried once; the exit status is 1 if any finally failed.

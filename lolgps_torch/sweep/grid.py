@@ -9,8 +9,8 @@ Each cell of the grid is one ``run_stream.py`` run in its own folder under ``--o
 ``<method>-<urdf stem>-<stream>-seed<S>``. ``--variants`` names a JSON object of named
 run_stream flag sets, ``{"payload": "--payload 1", "gmm": "--dynamics-prior gmm"}``: every
 cell then runs once per variant, with its flags after the common ones, in a folder named
-``<method>-<urdf stem>-<stream>-<variant>-seed<S>``. A Ray task (one CPU) runs the cell's scripts as
-subprocesses: ``run_stream.py`` (with ``--resume`` when the folder already holds config.json),
+``<method>-<urdf stem>-<stream>-<variant>-seed<S>``. A Ray task (one CPU) runs the cell's
+scripts as subprocesses: ``run_stream.py`` (with ``--resume`` when the folder already holds config.json),
 then, with ``--evaluate``, ``evaluate.py --workers 1``. No PyBullet client crosses a process,
 and a cell folder is exactly a command-line run's, so it resumes the same way. The scripts'
 output goes to the cell's ``sweep.log``, and the wall time of its attempts to
