@@ -369,6 +369,7 @@ def test_the_plant_table_reads_a_sweep_of_plants_and_learners(
         "payload.identified": "--payload 1 --gravity-compensation model --identify",
         "payload.gmm": "--payload 1 --gravity-compensation model --dynamics-prior gmm",
     }
+    assert len(json.loads(run_script(script, "variants").out)) == 7 * 3  # the table's plants
     path = tmp_path / "variants.json"
     path.write_text(listed.out)
     s = _sweep(tmp_path, "--seeds", "0-1", "--variants", str(path))

@@ -6,7 +6,9 @@
     python scripts/research/plant_table.py table DIR [DIR ...]
 
 ``variants`` prints a ``--variants`` file for ``scripts/sweep.py``: one flag set per plant
-(:data:`PLANTS`, the simulated arm's departure from the URDF, ``PlantConfig``) and learner
+(:data:`PLANTS`, the simulated arm's departure from the URDF, ``PlantConfig``; by default the
+seven of :data:`TABLE`, the others harsher: 0.5 and 2 kg, inertia and payload without any
+compensation, a delay between control steps with noise) and learner
 (:data:`PRIORS`: the URDF's fixed model as the dynamics prior, the arm identified from its
 rollouts, or the sample-only GMM prior), named ``<plant>.<learner>``. ``table`` reads the
 finished cells of such sweeps (merged: a seed's run counted once) and prints a
@@ -42,7 +44,15 @@ PLANTS = {
     "noise": ("sensor noise 1 mrad", "--obs-noise 0.001"),
     "late10": ("commands 10 ms late", "--action-delay 0.01"),
     "late50": ("commands 50 ms late", "--action-delay 0.05"),
+    "payload2": ("+2 kg, compensated by the URDF", "--payload 2 --gravity-compensation model"),
+    "payload05": ("+0.5 kg, compensated by the URDF", "--payload 0.5 --gravity-compensation model"),
+    "combo": (
+        "inertia ±30 %, +1.5 kg, no compensation",
+        "--plant-inertia-scale 0.3 --plant-seed 7 --payload 1.5 --gravity-compensation none",
+    ),
+    "late35noise": ("commands 35 ms late, 1 mrad noise", "--action-delay 0.035 --obs-noise 0.001"),
 }
+TABLE = ("urdf", "inertia", "payload", "nocomp", "noise", "late10", "late50")  # the default set
 PRIORS = {
     "model": ("URDF model", ""),
     "identified": ("identified", "--identify"),
@@ -145,7 +155,7 @@ def main() -> None:
     )
     commands = parser.add_subparsers(dest="command", required=True)
     write = commands.add_parser("variants", help="print a sweep --variants file")
-    write.add_argument("--plants", nargs="+", choices=list(PLANTS), default=list(PLANTS))
+    write.add_argument("--plants", nargs="+", choices=list(PLANTS), default=list(TABLE))
     write.add_argument("--priors", nargs="+", choices=list(PRIORS), default=list(PRIORS))
     read = commands.add_parser("table", help="the markdown table of a finished sweep")
     read.add_argument("out", nargs="+", help="sweep folders (holding sweep.json)")
