@@ -44,8 +44,8 @@ PLANTS = {
     "noise": ("sensor noise 1 mrad", "--obs-noise 0.001"),
     "late10": ("commands 10 ms late", "--action-delay 0.01"),
     "late50": ("commands 50 ms late", "--action-delay 0.05"),
-    "payload2": ("+2 kg, compensated by the URDF", "--payload 2 --gravity-compensation model"),
     "payload05": ("+0.5 kg, compensated by the URDF", "--payload 0.5 --gravity-compensation model"),
+    "payload2": ("+2 kg, compensated by the URDF", "--payload 2 --gravity-compensation model"),
     "combo": (
         "inertia ±30 %, +1.5 kg, no compensation",
         "--plant-inertia-scale 0.3 --plant-seed 7 --payload 1.5 --gravity-compensation none",
