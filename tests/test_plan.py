@@ -148,7 +148,7 @@ def test_rounds_on_a_nonlinear_system_reach_its_optimum_by_its_own_rollout() -> 
 
 def test_the_model_prior_plans_a_first_controller_that_inserts_the_peg() -> None:
     """On the KUKA, the first iteration's samples of the hold controller all end far from the
-    hole; with the model prior the first controller is planned on the arm's model, and its
+    hole; the first controller is planned on the arm's model (with the GMM prior the same), and its
     samples, drawn in the simulator with contact, already succeed. The hold's cost, which
     judges a rollout diverged, is then the cost of resting at the start pose: less than the
     hold's exploring samples cost, and far more than the planned samples'. The plan's time is
@@ -156,12 +156,14 @@ def test_the_model_prior_plans_a_first_controller_that_inserts_the_peg() -> None
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=5)
     try:
         model = LocalConfig()
-        base = replace(model, dynamics=replace(model.dynamics, prior="gmm"))
+        base = replace(model, dynamics=replace(model.dynamics, prior="gmm"), model_plans=0)
         assert model.dynamics.prior == "model"  # the default
         hold = LocalLearner(task, (0.02, -0.01), base, seed=1)
         planned = LocalLearner(task, (0.02, -0.01), model, seed=1)
         unplanned = LocalLearner(task, (0.02, -0.01), replace(model, model_plans=0), seed=1)
+        gmm = LocalLearner(task, (0.02, -0.01), replace(base, model_plans=10), seed=1)
         assert torch.equal(unplanned.p_cur.k, hold.p_cur.k)
+        assert torch.equal(gmm.p_cur.k, planned.p_cur.k)  # the plan is the model's either way
         assert torch.equal(hold.p_cur.cov, planned.p_cur.cov)
         assert not torch.equal(hold.p_cur.k, planned.p_cur.k)
         held, _, _ = iterate(hold, hold.p_cur, None, False, (0, 0, 0.0))

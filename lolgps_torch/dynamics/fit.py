@@ -91,8 +91,8 @@ class DynamicsConfig:
     :param seed: seed of the GMM's cold-start initialisation.
     :param prior: gmm: the GMM prior alone; model: the arm's rigid-body model linearised at
         each step's samples, mixed with the GMM prior (when use_prior) where the model does
-        not predict the samples (:class:`ModelPrior`); before the first sample, the local
-        learner then plans its first controller on the model (``LocalConfig.model_plans``).
+        not predict the samples (:class:`ModelPrior`). With either, the local learner plans
+        its first controller on the model before the first sample (``LocalConfig.model_plans``).
     :param model_tolerance: relative one-step error of the model at which its weight is 1/2.
     """
 

@@ -67,9 +67,11 @@ class LocalConfig:
         accepted iteration's by more than ``reject_z * sqrt(s_new^2 / N + s_acc^2 / N)`` (s the
         sample standard deviations of the total costs): only an increase that the N samples
         can tell from noise undoes a step (0: any increase does).
-    :param model_plans: with the model prior (``dynamics.prior == "model"``), C-steps taken on
-        the model before the first sample (:func:`planned_controller`; 0: the first iteration
-        samples the hold controller, as with the GMM prior).
+    :param model_plans: C-steps taken on the arm's model before the first sample
+        (:func:`planned_controller`; 0: the first iteration samples the hold controller), with
+        either dynamics prior: with the GMM prior too the teachers then follow the cost's
+        descent over the mouth within mm, where from the hold they came down 10-50 mm beside
+        it and the global policy lost positions under a payload (docs/RESULTS.md section 8).
     :param identify: with the model prior, identify the arm's physical parameters from the
         free-space transitions of the rollouts so far before learning each condition
         (:mod:`lolgps_torch.dynamics.identify`): the planned start and the model prior then
@@ -239,7 +241,7 @@ class LocalLearner:
     ) -> None:
         """``report`` receives the arm identified for condition ``condition`` (with
         ``config.identify``), measured on the condition's first rollouts; ``planner`` gives
-        :func:`planned_controller`'s result (with the model prior and ``config.model_plans``),
+        :func:`planned_controller`'s result (with ``config.model_plans``),
         computed here or ahead of time (:class:`~lolgps_torch.lolgps.plans.PlannedStarts`)."""
         self.task, self.offset, self.config = task, offset, config
         self.generator = torch.Generator().manual_seed(seed)
@@ -254,7 +256,7 @@ class LocalLearner:
         self.report, self.condition = report, condition
         self.fitter = DynamicsFitter(config.dynamics, task.model.linearize if model else None)
         start = time.perf_counter()
-        if model and config.model_plans > 0:
+        if config.model_plans > 0:
             try:
                 self.p_cur, self.start_cost = planner(task, self.targets, self.p_cur, config)
                 self.planned = True

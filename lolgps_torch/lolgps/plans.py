@@ -80,7 +80,7 @@ class PlannedStarts:
     """
 
     def __init__(self, task: PegTask, config: LocalConfig) -> None:
-        ahead = config.dynamics.prior == "model" and config.model_plans > 0
+        ahead = config.model_plans > 0
         self.task, self.config = task, config
         self.pool = task.pool if ahead and not config.identify else None
         self._pending: tuple[PlanErrand, int] | None = None  # the errand and its ticket

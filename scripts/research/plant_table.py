@@ -10,7 +10,8 @@
 seven of :data:`TABLE`, the others harsher: 0.5 and 2 kg, inertia and payload without any
 compensation, a delay between control steps with noise) and learner
 (:data:`PRIORS`: the URDF's fixed model as the dynamics prior, the arm identified from its
-rollouts, or the sample-only GMM prior), named ``<plant>.<learner>``. ``table`` reads the
+rollouts, or the sample-only GMM prior, by default; or the GMM prior from the hold rather than
+a controller planned on the model), named ``<plant>.<learner>``. ``table`` reads the
 finished cells of such sweeps (merged: a seed's run counted once) and prints a
 markdown table, a row per arm, plant and learner (in that order): the positions the final
 policy inserts the peg at (per seed), the worst final distance of a local controller over the
@@ -57,6 +58,7 @@ PRIORS = {
     "model": ("URDF model", ""),
     "identified": ("identified", "--identify"),
     "gmm": ("GMM", "--dynamics-prior gmm"),
+    "gmmhold": ("GMM from the hold", "--dynamics-prior gmm --model-plans 0"),
 }
 
 
@@ -156,7 +158,9 @@ def main() -> None:
     commands = parser.add_subparsers(dest="command", required=True)
     write = commands.add_parser("variants", help="print a sweep --variants file")
     write.add_argument("--plants", nargs="+", choices=list(PLANTS), default=list(TABLE))
-    write.add_argument("--priors", nargs="+", choices=list(PRIORS), default=list(PRIORS))
+    write.add_argument(
+        "--priors", nargs="+", choices=list(PRIORS), default=["model", "identified", "gmm"]
+    )
     read = commands.add_parser("table", help="the markdown table of a finished sweep")
     read.add_argument("out", nargs="+", help="sweep folders (holding sweep.json)")
     args = parser.parse_args()
