@@ -29,8 +29,8 @@ def _train(tmp_path: Path, *args: str) -> list[dict[str, float]]:
 
 
 def test_kuka_learns_the_nominal_hole(tmp_path: Path) -> None:
-    """From samples alone: with the GMM prior the first controller is the hold of the start
-    pose (with the default model prior it is planned on the model, tests/test_plan.py)."""
+    """From samples alone, as the paper: the GMM prior, and the first controller the hold of
+    the start pose (``--model-plans 0``; planned on the model otherwise, tests/test_plan.py)."""
     records = _train(
         tmp_path,
         "--urdf",
@@ -43,6 +43,8 @@ def test_kuka_learns_the_nominal_hole(tmp_path: Path) -> None:
         "--stop-at-success",
         "--dynamics-prior",
         "gmm",
+        "--model-plans",
+        "0",
     )
     assert records[0]["success_rate"] == 0.0  # the start pose is away from the hole
     assert records[-1]["success_rate"] >= 0.6  # then at least 3 of 5 samples insert the peg
@@ -72,10 +74,10 @@ def test_train_condition_sets_the_step_multiplier(tmp_path: Path) -> None:
 
 def test_panda_learns_the_nominal_hole(tmp_path: Path) -> None:
     """Another arm, unchanged code: pybullet_data's Panda with an attached peg, from samples
-    alone (the GMM prior)."""
+    alone (the GMM prior, from the hold)."""
     panda = os.path.join(pybullet_data.getDataPath(), "franka_panda/panda.urdf")
     records = _train(tmp_path, "--urdf", panda, "--hole", "0", "0", "--iterations", "8",
-                     "--stop-at-success", "--dynamics-prior", "gmm")  # fmt: skip
+                     "--stop-at-success", "--dynamics-prior", "gmm", "--model-plans", "0")  # fmt: skip
     assert records[0]["success_rate"] == 0.0
     assert records[-1]["success_rate"] >= 0.6
 
