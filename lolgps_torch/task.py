@@ -334,23 +334,27 @@ class PegTask:
         their transitions ``[N, T]`` are free of contact (before and after, the tip higher
         than the table by :data:`CLEARANCE` and the peg pointing down, its top above its tip,
         so that no part of it is lower than the tip by more than its radius) and of the joint
-        limits (by :data:`LIMIT_MARGIN` rad)."""
+        limits: each joint farther from them, at both ends, than :data:`LIMIT_MARGIN` and the
+        way it can go in one control step at the larger of its two speeds,
+        ``margin + dt max(|qd_0|, |qd_1|)`` (a joint 0.08 rad short of its limit at 17 rad/s
+        strikes it within the step and may be back inside at its end, moving away)."""
         lay = self.layout
         lower, upper = (
             torch.tensor(limit, dtype=torch.float64, device=self.device)
             for limit in (self.arm.lower, self.arm.upper)
         )
         x = torch.cat([samples.x, samples.final_state[:, None]], 1)
-        q, points = x[..., lay.q], x[..., lay.points]
+        q, qd, points = x[..., lay.q], x[..., lay.qd], x[..., lay.points]
         tip_height = points[..., 2]
         # the points are offsets from targets, the top's above the tip's by the separation
         top_over_tip = points[..., 5] - tip_height - self.arm.point_offsets[1][2]
-        clear = (
-            (tip_height > self.config.world.depth + CLEARANCE)
-            & (top_over_tip > 0.0)
-            & (torch.minimum(q - lower, upper - q).amin(-1) > LIMIT_MARGIN)
+        clear = (tip_height > self.config.world.depth + CLEARANCE) & (top_over_tip > 0.0)
+        room = torch.minimum(q - lower, upper - q)
+        reach = LIMIT_MARGIN + self.config.world.dt * torch.maximum(
+            qd[:, :-1].abs(), qd[:, 1:].abs()
         )
-        return x, clear[:, :-1] & clear[:, 1:]
+        within = ((room[:, :-1] > reach) & (room[:, 1:] > reach)).all(-1)
+        return x, clear[:, :-1] & clear[:, 1:] & within
 
     def record(self, samples: Trajectories, keep: int = IDENTIFY_TRANSITIONS) -> None:
         """Keep the newest ``keep`` of the transitions of ``samples`` that are free of contact
