@@ -244,6 +244,23 @@ def test_candidates_that_rounding_breaks_leave_the_search(monkeypatch: pytest.Mo
         c_step(cost, dynamics, p_bar, epsilon=5.0)
 
 
+def test_a_fit_that_does_not_lead_back_to_p_bar_keeps_p_bar() -> None:
+    """On dynamics that double the state every step for 100 steps the LQR at the largest eta
+    is still far from p_bar (KL in the hundreds where it tends to 0): no eta can be trusted,
+    and the C-step returns p_bar itself, KL 0, with a warning. On the same problem's stable
+    dynamics it meets the bound as usual."""
+    cost, dynamics, p_bar = random_problem(T=100, seed=1)
+    stable = c_step(cost, dynamics, p_bar, epsilon=10.0)
+    assert float(stable.kl.sum()) == pytest.approx(10.0, rel=0.1)
+    F = dynamics.F.clone()
+    F[..., : dynamics.x0_mean.shape[0]] *= 2.0
+    with pytest.warns(UserWarning, match="do not lead the C-step back to p_bar"):
+        kept = c_step(cost, dynamics._replace(F=F), p_bar, epsilon=10.0)
+    for part, bar in zip(kept.policy, p_bar, strict=True):
+        assert torch.equal(part, bar)
+    assert float(kept.kl.abs().sum()) < 1e-6
+
+
 def test_step_mult_adaptation() -> None:
     config = CStepConfig()
     assert kl_bound(2.0, 100, config) == pytest.approx(200.0)

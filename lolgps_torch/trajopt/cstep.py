@@ -10,6 +10,14 @@ monotone cubic interpolate of log KL against log eta, until ``|KL - epsilon| <= 
 (usually two passes).  When even ``eta_min`` gives ``KL <= (1 + tol) epsilon`` the constraint
 does not bind and that solution, LQR on ``C + eta_min (-log p_bar)``, is returned.
 
+As eta grows the solution tends to p_bar and its KL to 0: at ``eta_max`` it is below
+``tol epsilon`` on every fit that describes its samples (at most 0.06 against epsilon >= 1 over
+a whole KUKA stream learnt by the sample-only GMM prior).  A fit under which it is not (the
+Panda's first samples of a controller planned on its model, five rollouts fitted by the GMM
+prior alone: KL 50 at ``eta_max``, the controller's gains 500 from p_bar's, its predicted state
+covariance 1e25) cannot place p between p_bar and the cost's optimum, and p_bar itself, KL 0,
+is returned with a warning: the learner samples p_bar again rather than step on that fit.
+
 The search runs without autograd.  When an input requires a gradient the controller is
 solved once more at the chosen eta, held fixed, so that it is differentiable in the cost, the
 dynamics and p_bar (the dependence of eta itself on them is not included); otherwise the
@@ -88,12 +96,12 @@ def _evaluate(
 
 
 class _Choice(NamedTuple):
-    """Search state: ``done`` with ``candidate`` chosen, or else the next ``grid`` of eta inside
-    the bracket around epsilon, with ``candidate`` the one at its upper end (inside the
-    constraint)."""
+    """Search state: ``done`` with ``candidate`` chosen (None: p_bar itself), or else the next
+    ``grid`` of eta inside the bracket around epsilon, with ``candidate`` the one at its upper
+    end (inside the constraint)."""
 
     done: bool
-    candidate: int
+    candidate: int | None
     grid: Tensor
 
 
@@ -112,6 +120,14 @@ def _choose(eta: Tensor, kl: Tensor, epsilon: float, config: CStepConfig, window
     order = torch.argsort(eta)
     distinct = torch.cat([order[:1], order[1:][eta[order].diff() > 0]])  # PD raises may collide
     order, kl_sorted = distinct, kl[distinct]
+    if float(eta.max()) >= config.eta_max and kl_sorted[-1] > tol * epsilon:
+        warnings.warn(
+            f"KL to p_bar is {float(kl_sorted[-1]):.3g} at the largest eta {config.eta_max:.3g}, "
+            f"not near 0 (epsilon = {epsilon:.3g}): the fitted dynamics do not lead the C-step "
+            "back to p_bar; keeping p_bar",
+            stacklevel=3,
+        )
+        return _Choice(True, None, eta[:0])
     if kl_sorted[0] <= (1.0 + tol) * epsilon:
         return _Choice(True, int(order[0]), eta[:0])
     error = (kl - epsilon).abs()
@@ -185,9 +201,9 @@ def _dual_search(
     p_bar: LinearGaussian,
     epsilon: float,
     config: CStepConfig,
-) -> tuple[_Candidates, int, int, bool]:
-    """Batched dual search: all candidates evaluated, the chosen one's index, the number of
-    passes and whether the tolerance was met."""
+) -> tuple[_Candidates, int | None, int, bool]:
+    """Batched dual search: all candidates evaluated, the chosen one's index (None: p_bar),
+    the number of passes and whether the tolerance was met."""
     like = problem.C
     grid = torch.logspace(
         math.log10(config.eta_min),
@@ -251,8 +267,10 @@ def c_step(
         found, index, num_passes, converged = _dual_search(
             augment(cost, dynamics, p_bar), dynamics, p_bar, float(epsilon), config
         )
-    eta = found.eta[index]
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+    if index is None:  # p_bar itself, at eta = infinity
+        policy, eta = p_bar, p_bar.k.new_tensor(config.eta_max)
+    elif torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        eta = found.eta[index]
         gain, factor, eta_used, solved = solve_with_retry(
             augment(cost, dynamics, p_bar),
             eta[None],
@@ -265,6 +283,7 @@ def c_step(
         eta = eta_used[0]
     else:
         policy = LinearGaussian(*(part[index] for part in found.policy))
+        eta = found.eta[index]
     mu_x, sigma_x = state_marginals(policy, dynamics)
     kl = kl_divergence(policy, p_bar, mu_x, sigma_x)
     mu, sigma = joint_marginals(policy, mu_x, sigma_x)
