@@ -13,7 +13,9 @@ Per iteration it prints:
 
 - the samples' mean cost, success rate and mean final distance; the noiseless rollout's
   final distance of the new p_cur (``p_cur dist``);
-- step_mult, epsilon, eta and the C-step's KL;
+- step_mult, epsilon, eta and the C-step's KL, and the KL to p_bar of the C-step's solution at
+  the largest eta (``KL(eta_max)``, near 0 where the fit leads the C-step back to p_bar; above
+  a tenth of epsilon the C-step keeps p_bar, :mod:`lolgps_torch.trajopt.cstep`);
 - the step adaptation's three Laplace costs as improvements: ``pred`` = E[cost | p_prev, old
   model] - E[cost | p_act, old model] and ``act`` = E[cost | p_prev, old model] -
   E[cost | p_act, new model]; and the Monte-Carlo improvement of the sample costs;
@@ -34,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -43,7 +46,7 @@ import torch
 
 from lolgps_torch.cli import run
 from lolgps_torch.configs import from_dict
-from lolgps_torch.controllers import mix
+from lolgps_torch.controllers import mix, trajectory_kl
 from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.checkpoint import load_policy
 from lolgps_torch.data.run_folder import RunFolder
@@ -51,12 +54,13 @@ from lolgps_torch.dynamics import DynamicsFitter, prior_from_config
 from lolgps_torch.dynamics import fit as fit_module
 from lolgps_torch.dynamics.fit import gaussian_regression
 from lolgps_torch.lolgps import local as local_module
-from lolgps_torch.lolgps.local import LocalLearner
+from lolgps_torch.lolgps.local import Fit, LocalLearner
 from lolgps_torch.lolgps.run import read_run
 from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, noiseless_distance
 from lolgps_torch.policy import linearize_policy
 from lolgps_torch.task import PegTask
-from lolgps_torch.trajopt import laplace_cost
+from lolgps_torch.trajopt import CStepConfig, laplace_cost
+from lolgps_torch.trajopt.lqr import augment, solve_with_retry, to_policy
 from lolgps_torch.types import LinearDynamics, LinearGaussian, Trajectories
 
 
@@ -65,6 +69,18 @@ def one_step_error(dynamics: LinearDynamics, samples: Trajectories) -> float:
     xu = torch.cat([samples.x[:, :-1], samples.u[:, :-1]], dim=-1)
     predicted = torch.einsum("tij,ntj->nti", dynamics.F, xu) + dynamics.f
     return float((samples.x[:, 1:] - predicted).square().sum(-1).mean())
+
+
+def kl_at_largest_eta(fit: Fit, p_bar: LinearGaussian, config: CStepConfig) -> float:
+    """The trajectory KL to ``p_bar`` of the C-step's solution at ``config.eta_max`` on
+    ``fit`` (NaN where its Quu is not positive definite there)."""
+    eta = fit.cost.C.new_tensor([config.eta_max])
+    problem = augment(fit.cost, fit.dynamics, p_bar)
+    gain, factor, used, solved = solve_with_retry(problem, eta, config.pd_delta, config.eta_max)
+    if not bool(solved.all()):
+        return math.nan
+    policy = LinearGaussian(*(part[0] for part in to_policy(gain, factor, used)))
+    return float(trajectory_kl(policy, p_bar, fit.dynamics).sum())
 
 
 def merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -167,7 +183,7 @@ def main() -> None:
     previous: tuple[LinearDynamics, Trajectories] | None = None  # the last samples and their fit
     print(f"condition {args.condition} at {offset}, {config.local}")
     print(" it  cost     succ  dist   p_cur dist  step_mult  eps     eta       KL      "
-          "pred      act       MC impr   EM its/K  1-step err (held-out / own)")  # fmt: skip
+          "KL(eta_max)  pred      act       MC impr   EM its/K  1-step err (held-out / own)")  # fmt: skip
     for i in range(iterations):
         p_act = learner.p_cur if p_pre is None else mix(p_pre, learner.p_cur, alpha)
         clock.lap("other")
@@ -188,6 +204,9 @@ def main() -> None:
             p_pre = linearize_policy(policy, learner.accepted.x, policy_prior)
             clock.lap("p_pre fit")
         anchor = p_pre if p_pre is not None and config.cstep_anchor == "pre" else learner.p_cur
+        clock.lap("other")
+        reach = kl_at_largest_eta(fit, anchor, config.local.cstep)
+        clock.lap("trace only")
         epsilon, eta, kl = learner.improve(fit, anchor)
         clock.lap("C-step")
         held_out = ""
@@ -204,7 +223,7 @@ def main() -> None:
         print(
             f"{i:3d} {float(samples.cost.sum(1).mean()):8.2f} {float(samples.success.double().mean()):4.0%}"
             f"  {float(samples.final_distance.mean()):.3f}  {dist:.4f}      {learner.step_mult:6.3f}"
-            f"  {epsilon:6.1f}  {eta:8.3g}  {kl:7.2f}  {pred:8.2f}  {act:8.2f}  {mc:>9}  {em:>8}  {held_out}",
+            f"  {epsilon:6.1f}  {eta:8.3g}  {kl:7.2f}  {reach:11.3g}  {pred:8.2f}  {act:8.2f}  {mc:>9}  {em:>8}  {held_out}",
             flush=True,
         )
         assert shadow.dynamics is not None
