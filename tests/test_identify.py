@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -27,6 +28,8 @@ from lolgps_torch.sim.model import LINK_DAMPING, ControlStep, stabilising_inerti
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
+from lolgps_torch.task import PegTask, TaskConfig
+from lolgps_torch.types import Trajectories
 
 FAR = (0.0, 2.0, -1.0)  # a hole out of the arm's way
 
@@ -288,7 +291,6 @@ def test_the_learner_reports_the_identified_arm_on_unseen_rollouts() -> None:
     identified payload is near 1 kg and its one-step error a fraction of the URDF model's."""
     from lolgps_torch.data.records import IdentifiedRecord
     from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
-    from lolgps_torch.task import PegTask, TaskConfig
 
     plant = PlantConfig(payload=1.0, gravity_compensation="model")
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf", plant=plant), n_worlds=5)
@@ -312,55 +314,50 @@ def test_the_learner_reports_the_identified_arm_on_unseen_rollouts() -> None:
     assert report.to_json()["event"] == "identified"
 
 
-def test_a_peg_lying_on_the_table_is_not_free() -> None:
-    """A transition counts as free of contact only with the tip above the table by the
-    clearance and the peg pointing down: tilted up, its far end reaches lower than the tip."""
-    from lolgps_torch.task import PegTask, TaskConfig
-    from lolgps_torch.types import Trajectories
-
+def _which_free(T: int, edit: Callable[[torch.Tensor, PegTask], None]) -> list[list[bool]]:
+    """:meth:`PegTask.free_transitions` of three KUKA rollouts of T steps at rest at its start
+    pose, the tip 5 cm above the table and the peg pointing down, as ``edit(x, task)`` leaves
+    their states ``x [3, T+1, dX]``."""
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
     try:
-        lay, T = task.layout, 2
+        lay = task.layout
         x = torch.zeros(3, T + 1, lay.dX, dtype=torch.float64)
         x[..., lay.q] = task.q0
-        high = task.config.world.depth + 0.05  # the tip 5 cm above the table
+        high = task.config.world.depth + 0.05
         x[..., lay.points.start + 2] = high
-        x[0, ..., lay.points.start + 5] = high  # pointing down: the top 0.15 m above the tip
-        x[1, ..., lay.points.start + 5] = high - 0.16  # the top 1 cm below the tip
-        x[2, ..., lay.points.start + 2] = task.config.world.depth + 0.01  # the tip too low
+        x[..., lay.points.start + 5] = high  # the top's offset as the tip's: pointing down
+        edit(x, task)
         zeros = torch.zeros(3, T, dtype=torch.float64)
         u = torch.zeros(3, T, lay.dU, dtype=torch.float64)
         samples = Trajectories(x[:, :-1], u, zeros, zeros[:, 0], zeros[:, 0] > 0, x[:, -1])
-        _, free = task.free_transitions(samples)
+        return task.free_transitions(samples)[1].tolist()
     finally:
         task.close()
-    assert free.tolist() == [[True, True], [False, False], [False, False]]
+
+
+def test_a_peg_lying_on_the_table_is_not_free() -> None:
+    """A transition counts as free of contact only with the tip above the table by the
+    clearance and the peg pointing down: tilted up, its far end reaches lower than the tip."""
+
+    def edit(x: torch.Tensor, task: PegTask) -> None:
+        points = task.layout.points.start
+        x[1, ..., points + 5] -= 0.16  # the top 1 cm below the tip (0.15 m above its target)
+        x[2, ..., points + 2] = task.config.world.depth + 0.01  # the tip too low
+
+    assert _which_free(2, edit) == [[True, True], [False, False], [False, False]]
 
 
 def test_a_joint_that_can_strike_its_limit_within_the_step_is_not_free() -> None:
     """A joint 0.08 rad short of its limit is free at rest, not at 17 rad/s either way (it can
     go 0.85 rad in the control step)."""
-    from lolgps_torch.task import PegTask, TaskConfig
-    from lolgps_torch.types import Trajectories
 
-    task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
-    try:
-        lay, T = task.layout, 1
-        x = torch.zeros(3, T + 1, lay.dX, dtype=torch.float64)
-        x[..., lay.points.start + 2] = task.config.world.depth + 0.05
-        x[..., lay.points.start + 5] = task.config.world.depth + 0.2
-        q = torch.tensor(task.arm.lower, dtype=torch.float64) * 0.5
-        q[3] = task.arm.upper[3] - 0.08
-        x[..., lay.q] = q
-        x[1, 0, lay.qd.start + 3] = 17.0  # toward the limit
-        x[2, 1, lay.qd.start + 3] = -17.0  # back from it at the end
-        zeros = torch.zeros(3, T, dtype=torch.float64)
-        u = torch.zeros(3, T, lay.dU, dtype=torch.float64)
-        samples = Trajectories(x[:, :-1], u, zeros, zeros[:, 0], zeros[:, 0] > 0, x[:, -1])
-        _, free = task.free_transitions(samples)
-    finally:
-        task.close()
-    assert free.tolist() == [[True], [False], [False]]
+    def edit(x: torch.Tensor, task: PegTask) -> None:
+        q, qd = task.layout.q, task.layout.qd
+        x[..., q.start + 3] = task.arm.upper[3] - 0.08
+        x[1, 0, qd.start + 3] = 17.0  # toward the limit
+        x[2, 1, qd.start + 3] = -17.0  # back from it at the end
+
+    assert _which_free(1, edit) == [[True], [False], [False]]
 
 
 def test_an_arm_that_cannot_exist_is_not_identified(arm: ArmSpec) -> None:
@@ -377,7 +374,6 @@ def test_a_failed_identification_keeps_the_model(monkeypatch: pytest.MonkeyPatch
     """Where no arm that can exist fits the transitions, the task warns and keeps its model."""
     import lolgps_torch.task as task_module
     from lolgps_torch.errors import NumericalError
-    from lolgps_torch.task import PegTask, TaskConfig
 
     def fails(*_: object) -> ArmParameters:
         raise NumericalError("no arm")
@@ -402,7 +398,6 @@ def test_an_identification_worse_than_the_model_it_would_replace_is_not_taken(
     7 kg payload on the URDF's own arm) is refused with a warning; the next identification
     starts from the arm identified before."""
     import lolgps_torch.task as task_module
-    from lolgps_torch.task import PegTask, TaskConfig
 
     starts: list[ArmParameters | None] = []
 
