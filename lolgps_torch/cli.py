@@ -23,6 +23,7 @@ import torch
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalConfig
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.franka import RealArmConfig
 from lolgps_torch.sim.gravity import GravityConfig
 from lolgps_torch.sim.latency import DelayConfig
 from lolgps_torch.sim.plant import PlantConfig
@@ -225,6 +226,21 @@ def task_config(args: argparse.Namespace) -> TaskConfig:
     if args.mjcf is not None:
         return dataclasses.replace(config, urdf=args.mjcf, mjcf=True)
     return dataclasses.replace(config, urdf=args.urdf)
+
+
+ARM_FLAGS = ConfigFlags(RealArmConfig())
+
+
+def add_arm_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags of the arm the rollouts run on (``--arm franka --robot-ip IP``, its
+    settings), docs/REAL_ARM.md."""
+    ARM_FLAGS.add_to(parser.add_argument_group("real arm"))
+
+
+def arm_config(args: argparse.Namespace) -> RealArmConfig:
+    """The :class:`RealArmConfig` the arm flags describe, checked once all are set."""
+    fields = dataclasses.fields(RealArmConfig)
+    return RealArmConfig(**{f.name: getattr(args, f.name) for f in fields})
 
 
 def scale_factor(text: str) -> float:

@@ -44,6 +44,7 @@ from lolgps_torch.robot.placement import (
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.engines import build_world, engine_errors
+from lolgps_torch.sim.franka import SIMULATED, ArmSampler, RealArmConfig
 from lolgps_torch.sim.gravity import GravityConfig, GravityEstimate, estimate_gravity, let_go
 from lolgps_torch.sim.latency import DelayConfig, DelayEstimate, estimate_delay, excite
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
@@ -272,10 +273,17 @@ class PegTask:
     :param workers: processes that :meth:`sample` spreads its rollouts over (1: this process);
         the rollouts are the same for any number. Rollouts on a CUDA device stay in this
         process.
+    :param real: the arm the rollouts run on: with a real one (``--arm franka``) they run one
+        at a time on it, in this process, whatever ``n_worlds`` and ``workers`` say.
     """
 
     def __init__(
-        self, config: TaskConfig, n_worlds: int = 5, device: str = "cpu", workers: int = 1
+        self,
+        config: TaskConfig,
+        n_worlds: int = 5,
+        device: str = "cpu",
+        workers: int = 1,
+        real: RealArmConfig = SIMULATED,
     ) -> None:
         if workers < 1:
             raise LolgpsError(f"workers {workers}: must be at least 1")
@@ -288,16 +296,15 @@ class PegTask:
             self.geometry = place_task(
                 self.arm, self.kinematics, config.placement, config.world.depth
             )
-            self.sampler = Sampler(
-                self.arm,
-                config.world,
-                self.geometry.nominal_mouth,
-                self.geometry.q0,
-                n_worlds,
-                device,
-                config.plant,
-                config.sim,
-            )
+            mouth, q0 = self.geometry.nominal_mouth, self.geometry.q0
+            if real.arm == "simulated":
+                self.sampler = Sampler(
+                    self.arm, config.world, mouth, q0, n_worlds, device, config.plant, config.sim
+                )
+            else:
+                self.sampler = ArmSampler(
+                    real, self.arm, config.world, mouth, q0, device, config.plant
+                )
         except (*engine_errors(config.sim), torch.linalg.LinAlgError) as error:
             message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
             raise LolgpsError(f"{config.urdf}: the arm cannot be simulated: {message}") from None
@@ -309,7 +316,7 @@ class PegTask:
             config.plant,
             config.sim,
         )
-        parallel = workers > 1 and self.device.type == "cpu"
+        parallel = workers > 1 and self.device.type == "cpu" and real.arm == "simulated"
         self.pool = RolloutPool(setup, workers, self.sampler) if parallel else None
         self.cost = peg_cost(config.cost, self.arm, self.kinematics, self.layout)
         self._model: ControlStep | None = None

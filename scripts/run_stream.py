@@ -39,11 +39,13 @@ import torch
 from lolgps_torch.cli import (
     ConfigFlags,
     Position,
+    add_arm_arguments,
     add_delay_argument,
     add_gravity_argument,
     add_task_arguments,
     add_workers_argument,
     allow_for_delay,
+    arm_config,
     check_device,
     compensate_gravity,
     detect_delay,
@@ -152,6 +154,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     add_gravity_argument(parser)
     add_delay_argument(parser)
     add_workers_argument(parser)
+    add_arm_arguments(parser)
     return parser.parse_args(argv)
 
 
@@ -200,7 +203,7 @@ def detected_gravity(args: argparse.Namespace, task: TaskConfig, folder: RunFold
     folder records, else as :func:`~lolgps_torch.cli.detect_gravity` finds."""
     if args.resume:
         return folder.read_config().get(GRAVITY_NOTE) == "none"
-    return detect_gravity(task, args.detect_gravity)
+    return detect_gravity(task, args.detect_gravity and args.arm == "simulated")
 
 
 def detected_delay(args: argparse.Namespace, task: TaskConfig, folder: RunFolder) -> float:
@@ -208,7 +211,7 @@ def detected_delay(args: argparse.Namespace, task: TaskConfig, folder: RunFolder
     folder records, else the one :func:`~lolgps_torch.cli.detect_delay` estimates."""
     if args.resume:
         return float(folder.read_config().get("detected_delay", 0.0))
-    return detect_delay(task, args.detect_delay)
+    return detect_delay(task, args.detect_delay and args.arm == "simulated")
 
 
 def plan_run(args: argparse.Namespace) -> Plan:
@@ -351,8 +354,9 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
 def main() -> None:
     args = parse_args()
     processes = workers(args)  # checked before the placement's search
+    real = arm_config(args)
     plan = plan_run(args)
-    task = PegTask(plan.task, plan.stream.local.samples, device=str(plan.device), workers=processes)
+    task = PegTask(plan.task, plan.stream.local.samples, str(plan.device), processes, real)
     try:  # the task's placement has checked every condition's reachability
         if not args.resume:  # recorded with the hole and start pose it was placed at
             placed = replace(plan.task, placement=pinned(plan.task.placement, task.geometry))
