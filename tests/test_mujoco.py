@@ -17,6 +17,7 @@ import pytest
 import torch
 from conftest import ROOT, SMALL, ScriptRun
 
+from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
@@ -28,6 +29,7 @@ from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.types import LinearGaussian
 
 mujoco = pytest.importorskip("mujoco")
+from lolgps_torch.sim.mujoco_compat import mass_matrix  # noqa: E402
 from lolgps_torch.sim.mujoco_world import LINK_DAMPING, MujocoWorld, link_damping  # noqa: E402
 
 ARMS = {
@@ -43,7 +45,7 @@ def arm(request: pytest.FixtureRequest) -> ArmSpec:
 
 
 def test_mass_matrix_and_bias_forces_match_the_rigid_body_model(arm: ArmSpec) -> None:
-    """MuJoCo's compiled arm has the torch model's M(q) (mj_fullM) and c(q, qd) + g(q)
+    """MuJoCo's compiled arm has the torch model's M(q) (mass_matrix) and c(q, qd) + g(q)
     (qfrc_bias) at random states."""
     world = build_world("mujoco", arm, WorldConfig(), FAR)
     m, d = world.model, mujoco.MjData(world.model)
@@ -54,9 +56,7 @@ def test_mass_matrix_and_bias_forces_match_the_rigid_body_model(arm: ArmSpec) ->
         qd = rng.normal(size=arm.dof)
         d.qpos[world.qpos_ids], d.qvel[world.dof_ids] = q, qd
         mujoco.mj_forward(m, d)
-        full = np.zeros((m.nv, m.nv))
-        mujoco.mj_fullM(m, full, d.qM)
-        M = full[np.ix_(world.dof_ids, world.dof_ids)]
+        M = mass_matrix(m, d)[np.ix_(world.dof_ids, world.dof_ids)]
         bias = d.qfrc_bias[world.dof_ids]
         T = torch.as_tensor
         expected_M = dyn.mass_matrix(T(q)).numpy()
@@ -268,3 +268,43 @@ def test_plant_variations_and_a_missing_engine_are_one_line_errors(
         "error: --sim mujoco needs MuJoCo, which is not installed: pip install -e '.[mujoco]'\n"
     )
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("version", "accepted"),
+    [("3.3.6", False), ("3.3.7", True), ("3.8.0", True), ("3.17.0", True), ("4.0.0", False),
+     ("4.0.1", True), ("4.3.2rc1", True), ("5.0.0", False)],
+)  # fmt: skip
+def test_mujoco_releases_from_3_3_7_up_to_4_x_are_taken_but_4_0_0(
+    monkeypatch: pytest.MonkeyPatch, version: str, accepted: bool
+) -> None:
+    monkeypatch.setattr(simulator.importlib.metadata, "version", lambda name: version)
+    if accepted:
+        simulator.require("mujoco")
+        return
+    with pytest.raises(LolgpsError) as refused:
+        simulator.require("mujoco")
+    assert str(refused.value) == (
+        f"--sim mujoco needs MuJoCo 3.3.7 up to 4.x (not 4.0.0), found {version}: "
+        "pip uninstall -y mujoco && pip install -e '.[mujoco]'"
+    )
+
+
+def test_a_mujoco_that_does_not_import_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 4.x upgraded in place over a 3.x may have lost files to the old release's uninstall:
+    the error says so and how to reinstall."""
+    import_module = simulator.importlib.import_module
+
+    def broken(name: str, *rest: str) -> object:
+        if name == "mujoco":
+            raise ImportError("libmujoco.so.4.0.1: cannot open shared object file\nmore")
+        return import_module(name, *rest)
+
+    monkeypatch.setattr(simulator.importlib, "import_module", broken)
+    with pytest.raises(LolgpsError) as refused:
+        simulator.require("mujoco")
+    version = simulator.importlib.metadata.version("mujoco")
+    assert str(refused.value) == (
+        f"MuJoCo {version} is installed but does not import (libmujoco.so.4.0.1: cannot open "
+        "shared object file): pip uninstall -y mujoco && pip install -e '.[mujoco]'"
+    )

@@ -38,6 +38,12 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.spec import DEFAULT_VELOCITY, add_inertial
 
 ROOT_LINK = "world"
+# MuJoCo's enum values an arm's model is read with, as plain integers: from 4.0 an enum no
+# longer equals the numpy integer a model's array holds
+HINGE, SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
+FREE = int(mujoco.mjtJoint.mjJNT_FREE)
+JOINT_TRANSMISSION, NO_BIAS = int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtBias.mjBIAS_NONE)
+KINDS = {HINGE: "revolute", SLIDE: "prismatic"}  # URDF's joint of each type an arm may have
 
 
 def _rpy(quat: np.ndarray) -> str:
@@ -83,12 +89,12 @@ def _torque_limit(m: mujoco.MjModel, joint: int) -> float:
     if m.jnt_actfrclimited[joint]:
         limits.append(float(np.abs(m.jnt_actfrcrange[joint]).max()))
     for a in range(m.nu):
-        if m.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT or m.actuator_trnid[a, 0] != joint:
+        if m.actuator_trntype[a] != JOINT_TRANSMISSION or m.actuator_trnid[a, 0] != joint:
             continue
         gear = abs(float(m.actuator_gear[a, 0]))
         if m.actuator_forcelimited[a]:
             limits.append(gear * float(np.abs(m.actuator_forcerange[a]).max()))
-        elif m.actuator_ctrllimited[a] and m.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE:
+        elif m.actuator_ctrllimited[a] and m.actuator_biastype[a] == NO_BIAS:
             gain = abs(float(m.actuator_gainprm[a, 0]))
             limits.append(gear * gain * float(np.abs(m.actuator_ctrlrange[a]).max()))
     return min(limits) if limits else 0.0
@@ -121,13 +127,9 @@ def mjcf_urdf(path: str) -> str:
         joint = int(m.body_jntadr[b]) if m.body_jntnum[b] else -1
         kind = "fixed"
         if joint >= 0:
-            kinds = {
-                mujoco.mjtJoint.mjJNT_HINGE: "revolute",
-                mujoco.mjtJoint.mjJNT_SLIDE: "prismatic",
-            }
-            kind = kinds.get(m.jnt_type[joint], "")
+            kind = KINDS.get(int(m.jnt_type[joint]), "")
             if not kind:
-                moving = "free" if m.jnt_type[joint] == mujoco.mjtJoint.mjJNT_FREE else "ball"
+                moving = "free" if m.jnt_type[joint] == FREE else "ball"
                 raise LolgpsError(
                     f"{path}: body {name!r} has a {moving} joint; an arm's base is fixed and "
                     f"its joints are hinges or slides"

@@ -42,6 +42,7 @@ from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.mujoco_compat import mass_matrix, same_contact
 from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
 from lolgps_torch.sim.simulator import (
     World,
@@ -185,7 +186,6 @@ class MujocoWorld(World):
             spec = mujoco.MjSpec.from_string(text)
             spec.option.timestep = self.physics_step
             spec.option.gravity = [0.0, 0.0, -cfg.gravity]
-            spec.option.enableflags |= int(mujoco.mjtEnableBit.mjENBL_MULTICCD)
             soft = [CONTACT_TIME_CONSTANT * self.physics_step, 1.0]  # time constant, damping ratio
             for geom in spec.geoms:
                 geom.friction = friction
@@ -203,6 +203,7 @@ class MujocoWorld(World):
                     friction=friction,
                     solref=soft,
                 )
+            same_contact(spec)
             return spec.compile()
         except ValueError as error:
             message = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
@@ -226,9 +227,7 @@ class MujocoWorld(World):
         m, rest = self.model, self._rest
         rest.qpos[self.qpos_ids] = q
         mujoco.mj_fwdPosition(m, rest)
-        full = np.zeros((m.nv, m.nv))
-        mujoco.mj_fullM(m, full, rest.qM)
-        return full[np.ix_(self.dof_ids, self.dof_ids)]
+        return mass_matrix(m, rest)[np.ix_(self.dof_ids, self.dof_ids)]
 
     def _move_hole(self, mouth: np.ndarray) -> None:
         self.data.mocap_pos[self.hole_mocap] = mouth

@@ -20,9 +20,11 @@ because joint damping would be unstable).
 
 from __future__ import annotations
 
+import importlib
 import importlib.metadata
 import importlib.util
 import math
+import re
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,6 +46,9 @@ from lolgps_torch.state import StateLayout
 
 Simulator = Literal["pybullet", "mujoco"]
 MUJOCO_INSTALL = "pip install -e '.[mujoco]'"
+MUJOCO_OLDEST = (3, 3, 7)
+# a MuJoCo of another release, or a 4.x upgraded in place over a 3.x (4.0 split the package)
+MUJOCO_REINSTALL = f"pip uninstall -y mujoco && {MUJOCO_INSTALL}"
 
 
 @dataclass(frozen=True)
@@ -402,14 +407,26 @@ class Display(Protocol):
 
 def require(simulator: Simulator) -> None:
     """Raise :class:`LolgpsError` if ``simulator``'s engine is not installed (PyBullet always
-    is; MuJoCo is the ``mujoco`` extra, a 3.3 release: later ones renamed enums it uses)."""
+    is; MuJoCo is the ``mujoco`` extra: a release from :data:`MUJOCO_OLDEST` up to 4.x, but
+    not 4.0.0, whose Newton solver 4.0.1 corrected), or does not import."""
     if simulator != "mujoco":
         return
     if importlib.util.find_spec("mujoco") is None:
         raise LolgpsError(f"--sim mujoco needs MuJoCo, which is not installed: {MUJOCO_INSTALL}")
     version = importlib.metadata.version("mujoco")
-    if not version.startswith("3.3."):
-        raise LolgpsError(f"--sim mujoco needs MuJoCo 3.3, found {version}: {MUJOCO_INSTALL}")
+    release = tuple(int(part) for part in re.findall(r"\d+", version)[:3])
+    if not MUJOCO_OLDEST <= release < (5,) or release == (4, 0, 0):
+        raise LolgpsError(
+            f"--sim mujoco needs MuJoCo 3.3.7 up to 4.x (not 4.0.0), found {version}: "
+            f"{MUJOCO_REINSTALL}"
+        )
+    try:
+        importlib.import_module("mujoco")
+    except ImportError as error:
+        first = str(error).strip().splitlines()[0] if str(error).strip() else repr(error)
+        raise LolgpsError(
+            f"MuJoCo {version} is installed but does not import ({first}): {MUJOCO_REINSTALL}"
+        ) from None
 
 
 def check_plant(simulator: Simulator, plant: PlantConfig) -> None:
