@@ -81,7 +81,7 @@ class RealArmConfig:
     arm: ArmKind = "simulated"
     robot_ip: str = ""
     move_speed: float = 0.4
-    deadline: float = 0.05
+    deadline: float = 0.2
     collision_torque: float = 0.6
     collision_force: float = 60.0
     realtime: bool = False

@@ -1,0 +1,201 @@
+"""The Franka backend (lolgps_torch/sim/franka.py) against a stand-in FR3 through the real
+protocol: pylibfranka talking to franky-sim (tests/franka_stand_in.py), each test with a
+server of its own in a private network namespace, stopped when the test's command ends."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+STAND_IN = REPO / "tests" / "franka_stand_in.py"
+
+
+def _unshare_works() -> bool:
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        return False
+    probe = subprocess.run(["unshare", "-n", "true"], capture_output=True)
+    return probe.returncode == 0
+
+
+_missing = [m for m in ("pylibfranka", "franky_sim") if importlib.util.find_spec(m) is None]
+pytestmark = [
+    pytest.mark.skipif(
+        bool(_missing), reason=f"not installed: {_missing} (pip install -e '.[franka]' franky-sim)"
+    ),
+    pytest.mark.skipif(
+        not _missing and not _unshare_works(), reason="unshare -n is not permitted here"
+    ),
+]
+
+
+@pytest.fixture
+def fr3(tmp_path: Path) -> Path:
+    """franky-sim's FR3 MJCF, its meshes named where they are installed."""
+    spec = importlib.util.find_spec("franky_sim")
+    assert spec is not None and spec.origin is not None
+    assets = Path(spec.origin).parent / "assets"
+    text = (assets / "fr3.xml").read_text()
+    path = tmp_path / "fr3.xml"
+    path.write_text(text.replace('meshdir="assets"', f'meshdir="{assets / "meshes"}"'))
+    return path
+
+
+def in_namespace(*command: str, reflexes: bool = False, timeout: float = 600) -> str:
+    """``command`` run beside a stand-in server in a network namespace of its own; its
+    output (stdout and stderr), the test failing where it fails."""
+    flags = ["--reflexes"] if reflexes else []
+    result = subprocess.run(
+        ["unshare", "-n", "--", sys.executable, str(STAND_IN), *flags, "--", *command],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+    )
+    output = result.stdout + result.stderr
+    assert result.returncode == 0, output
+    return output
+
+
+PRELUDE = """
+import json, time
+import numpy as np
+from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.placement import place_task
+from lolgps_torch.sim.franka import ArmSampler, RealArmConfig
+from lolgps_torch.task import TaskConfig, load_task_arm
+config = TaskConfig(urdf={mjcf!r}, mjcf=True, sim="mujoco", ee_link="hand")
+arm = load_task_arm(config)
+geometry = place_task(arm, PegKinematics(arm), config.placement, config.world.depth)
+real = RealArmConfig(arm="franka", robot_ip="127.0.0.1", yes=True, deadline={deadline})
+sampler = ArmSampler(real, arm, config.world, geometry.nominal_mouth, geometry.q0)
+world = sampler.worlds[0]
+world.set_hole((0.0, 0.0))
+q0 = np.asarray(geometry.q0)
+"""
+
+
+def run_script(
+    mjcf: Path, body: str, reflexes: bool = False, deadline: float = 0.2
+) -> dict[str, object]:
+    """The prelude (the FR3's sampler on the stand-in, the learner's deadline ``deadline``)
+    and ``body``, which prints one JSON line; that line read back."""
+    script = PRELUDE.format(mjcf=str(mjcf), deadline=deadline) + textwrap.dedent(body)
+    output = in_namespace(sys.executable, "-c", script, reflexes=reflexes)
+    (line,) = [line for line in output.splitlines() if line.startswith("{")]
+    result: dict[str, object] = json.loads(line)
+    result["output"] = output
+    return result
+
+
+def test_holds_still(fr3: Path) -> None:
+    """Connected and at the start pose, zero torque over the arm's own gravity compensation
+    for 1 s (20 control steps) moves no joint by 1 mrad, at the arm's 1 kHz with few ticks
+    missed."""
+    result = run_script(
+        fr3,
+        """
+        x0 = world.reset(q0)
+        for _ in range(20):
+            x = world.step(np.zeros(7))
+        stats = world.device.stats()
+        print(json.dumps({"drift": float(np.abs(x[:7] - x0[:7]).max()),
+                          "start": float(np.abs(x0[:7] - q0).max()),
+                          "ticks": stats.ticks, "missed": stats.missed,
+                          "fault": world.fault}))
+        """,
+    )
+    assert result["fault"] is None
+    assert result["drift"] < 1e-3
+    assert result["start"] < 2e-3  # the move back to the start pose
+    assert result["ticks"] >= 1000
+    assert result["missed"] <= 10  # 1 % (the machine may be loaded)
+
+
+STEP_ROLLOUTS = """
+class Act:
+    def __init__(self, u, stall_at=-1):
+        self.u, self.stall_at = u, stall_at
+    def __call__(self, t, x, rows):
+        import torch
+        if t == self.stall_at:
+            time.sleep(0.1)
+        return torch.tensor(self.u, dtype=torch.float64)[None]
+"""
+
+
+def test_speed_reflex_reported_and_recovered(fr3: Path) -> None:
+    """Joint 7 driven past the FR3's velocity limit: the arm's reflex aborts the torque
+    command; the rollout ends as a fault in one line, the arm is recovered and moved back,
+    and the next rollout runs."""
+    result = run_script(
+        fr3,
+        STEP_ROLLOUTS
+        + """
+        fast = sampler.rollout(Act([0, 0, 0, 0, 0, 0, 12.0]), [(0.0, 0.0)])
+        reason = world.fault
+        calm = sampler.rollout(Act([0.0] * 7), [(0.0, 0.0)])
+        print(json.dumps({"fast": bool(fast.fault[0]), "reason": reason,
+                          "calm": bool(calm.fault[0]),
+                          "back": float(np.abs(calm.x[0, 0, :7].numpy() - q0).max())}))
+        """,
+        reflexes=True,
+    )
+    assert result["fast"] and not result["calm"]
+    assert "joint_velocity_violation" in str(result["reason"])
+    assert result["back"] < 2e-3
+    assert "counts as failed" in str(result["output"])
+
+
+def test_stalled_learner_ends_rollout(fr3: Path) -> None:
+    """The learner stalls 100 ms within a rollout, the server enforcing the protocol's
+    timing: the rollout ends as a fault (the arm's loop, keeping the protocol's pace, ends
+    the torque command when the learner's command is later than its deadline, 50 ms here),
+    and the next rollout runs."""
+    result = run_script(
+        fr3,
+        STEP_ROLLOUTS
+        + """
+        stalled = sampler.rollout(Act([0.0] * 7, stall_at=10), [(0.0, 0.0)])
+        reason = world.fault
+        after = sampler.rollout(Act([0.0] * 7), [(0.0, 0.0)])
+        print(json.dumps({"stalled": bool(stalled.fault[0]), "reason": reason,
+                          "after": bool(after.fault[0])}))
+        """,
+        reflexes=True,
+        deadline=0.05,
+    )
+    assert result["stalled"] and not result["after"]
+    assert "late" in str(result["reason"])
+
+
+def run_stream(fr3: Path, out: Path, conditions: list[list[float]], *extra: str) -> list[str]:
+    """scripts/run_stream.py's command on the stand-in FR3 at ``conditions``."""
+    path = out.parent / f"{out.name}-conditions.json"
+    path.write_text(json.dumps(conditions))
+    return [
+        sys.executable, "scripts/run_stream.py", "--mjcf", str(fr3), "--sim", "mujoco",
+        "--ee-link", "hand", "--arm", "franka", "--robot-ip", "127.0.0.1", "--yes",
+        "--conditions", str(path), "--out", str(out), "--workers", "1", *extra,
+    ]  # fmt: skip
+
+
+def test_learns_one_condition(fr3: Path, tmp_path: Path) -> None:
+    """One condition in free space, two iterations of two rollouts: the peg tip ends within
+    the success threshold of the hole's floor point, with no fault."""
+    out = tmp_path / "run"
+    command = run_stream(fr3, out, [[0.0, 0.0]], "--samples", "2", "--max-iterations", "2",
+                         "--success-phases", "1", "--repairs", "0")  # fmt: skip
+    output = in_namespace(*command)
+    summary = json.loads((out / "summary.json").read_text())
+    (entry,) = summary["conditions"]
+    assert entry["local_final_distance"] < 0.06, output
+    assert "the arm stopped" not in output
+    assert "rollout 1 on the arm" in output
