@@ -45,7 +45,7 @@ class ReflexServer(FrankaRobotServer):  # type: ignore[misc]
 
     def __init__(self, robot: Any, hosts: list[str]) -> None:
         super().__init__(robot, hosts)
-        self.torque, self.quiet, self.error = False, 0, -1
+        self.torque, self.quiet, self.error, self.aborted = False, 0, -1, 0
 
     def start_motion(self, controller: Any, generator: Any, motion: int) -> None:
         super().start_motion(controller, generator, motion)
@@ -62,6 +62,11 @@ class ReflexServer(FrankaRobotServer):  # type: ignore[misc]
 
     def _post_process_commands(self) -> None:
         super()._post_process_commands()
+        if self.aborted:  # the state saying why has gone out: abort the motion
+            BaseCommand.send_response(
+                self._tcp_socket, RobotCommand.kMove, self.aborted, MoveStatus.kReflexAborted
+            )
+            self.aborted = 0
         if not (self.reflexes and self.torque and self.current_motion_id):
             return
         self.quiet += 1
@@ -71,21 +76,21 @@ class ReflexServer(FrankaRobotServer):  # type: ignore[misc]
             self._abort(COMMUNICATION_CONSTRAINTS_VIOLATION)
 
     def _abort(self, error: int) -> None:
-        motion = self.current_motion_id
+        """Stop the motion, the state saying ``error``; the motion's answer follows it."""
+        self.aborted = self.current_motion_id
         self.stop_motion(send_preemption_signal=False)
         self.reset_current_motion_id()
         self.error = error
-        BaseCommand.send_response(
-            self._tcp_socket, RobotCommand.kMove, motion, MoveStatus.kReflexAborted
-        )
 
     @property
     def robot_state(self) -> Any:
         state = super().robot_state
         if self.error < 0:
             return state
-        flags = [i == self.error for i in range(len(state.last_motion_errors))]
-        return state.replace(last_motion_errors=tuple(flags))
+        flags = tuple(i == self.error for i in range(len(state.reflex_reason)))
+        if self.aborted:
+            return state.replace(errors=flags, reflex_reason=flags)
+        return state.replace(reflex_reason=flags)  # libfranka's last_motion_errors
 
 
 class Server(SimulationServer):  # type: ignore[misc]

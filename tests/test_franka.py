@@ -82,44 +82,8 @@ q0 = np.asarray(geometry.q0)
 """
 
 
-def run_script(
-    mjcf: Path, body: str, reflexes: bool = False, deadline: float = 0.2
-) -> dict[str, object]:
-    """The prelude (the FR3's sampler on the stand-in, the learner's deadline ``deadline``)
-    and ``body``, which prints one JSON line; that line read back."""
-    script = PRELUDE.format(mjcf=str(mjcf), deadline=deadline) + textwrap.dedent(body)
-    output = in_namespace(sys.executable, "-c", script, reflexes=reflexes)
-    (line,) = [line for line in output.splitlines() if line.startswith("{")]
-    result: dict[str, object] = json.loads(line)
-    result["output"] = output
-    return result
-
-
-def test_holds_still(fr3: Path) -> None:
-    """Connected and at the start pose, zero torque over the arm's own gravity compensation
-    for 1 s (20 control steps) moves no joint by 1 mrad, at the arm's 1 kHz with few ticks
-    missed."""
-    result = run_script(
-        fr3,
-        """
-        x0 = world.reset(q0)
-        for _ in range(20):
-            x = world.step(np.zeros(7))
-        stats = world.device.stats()
-        print(json.dumps({"drift": float(np.abs(x[:7] - x0[:7]).max()),
-                          "start": float(np.abs(x0[:7] - q0).max()),
-                          "ticks": stats.ticks, "missed": stats.missed,
-                          "fault": world.fault}))
-        """,
-    )
-    assert result["fault"] is None
-    assert result["drift"] < 1e-3
-    assert result["start"] < 2e-3  # the move back to the start pose
-    assert result["ticks"] >= 1000
-    assert result["missed"] <= 10  # 1 % (the machine may be loaded)
-
-
-STEP_ROLLOUTS = """
+# an actor: the torque u at every step, the learner stalling 100 ms at step stall_at
+ACT = """
 class Act:
     def __init__(self, u, stall_at=-1):
         self.u, self.stall_at = u, stall_at
@@ -131,14 +95,57 @@ class Act:
 """
 
 
+def run_script(
+    mjcf: Path, body: str, reflexes: bool = False, deadline: float = 0.2
+) -> dict[str, object]:
+    """The prelude (the FR3's sampler on the stand-in, the learner's deadline ``deadline``)
+    and ``body``, which prints one JSON line; that line read back."""
+    script = PRELUDE.format(mjcf=str(mjcf), deadline=deadline) + ACT + textwrap.dedent(body)
+    output = in_namespace(sys.executable, "-c", script, reflexes=reflexes)
+    (line,) = [line for line in output.splitlines() if line.startswith("{")]
+    result: dict[str, object] = json.loads(line)
+    result["output"] = output
+    return result
+
+
+def test_holds_still(fr3: Path) -> None:
+    """Connected and moved to the start pose, zero torque over the arm's own gravity
+    compensation for 1 s (20 control steps) moves no joint by 1 mrad, at the arm's 1 kHz
+    with at most 1 % of the ticks missed.  The hold is the second at the start pose: the first
+    move, 0.79 rad of joint 7 from the stand-in's home pose, leaves that joint wound 1 mrad
+    into MuJoCo's soft joint friction, which the first torque command releases (measured:
+    -1.0 mrad in the first step, then nothing; a property of the stand-in)."""
+    result = run_script(
+        fr3,
+        """
+        world.reset(q0)
+        world.step(np.zeros(7))
+        before = world.device.stats()
+        x0 = world.reset(q0)
+        for _ in range(20):
+            x = world.step(np.zeros(7))
+        stats = world.device.stats()
+        print(json.dumps({"drift": float(np.abs(x[:7] - x0[:7]).max()),
+                          "start": float(np.abs(x0[:7] - q0).max()),
+                          "ticks": stats.ticks - before.ticks,
+                          "missed": stats.missed - before.missed,
+                          "fault": world.fault}))
+        """,
+    )
+    assert result["fault"] is None
+    assert result["drift"] < 1e-3
+    assert result["start"] < 2e-3  # the move back to the start pose
+    assert result["ticks"] >= 1000
+    assert result["missed"] <= 10  # 1 % (the machine may be loaded)
+
+
 def test_speed_reflex_reported_and_recovered(fr3: Path) -> None:
     """Joint 7 driven past the FR3's velocity limit: the arm's reflex aborts the torque
     command; the rollout ends as a fault in one line, the arm is recovered and moved back,
     and the next rollout runs."""
     result = run_script(
         fr3,
-        STEP_ROLLOUTS
-        + """
+        """
         fast = sampler.rollout(Act([0, 0, 0, 0, 0, 0, 12.0]), [(0.0, 0.0)])
         reason = world.fault
         calm = sampler.rollout(Act([0.0] * 7), [(0.0, 0.0)])
@@ -161,8 +168,7 @@ def test_stalled_learner_ends_rollout(fr3: Path) -> None:
     and the next rollout runs."""
     result = run_script(
         fr3,
-        STEP_ROLLOUTS
-        + """
+        """
         stalled = sampler.rollout(Act([0.0] * 7, stall_at=10), [(0.0, 0.0)])
         reason = world.fault
         after = sampler.rollout(Act([0.0] * 7), [(0.0, 0.0)])
