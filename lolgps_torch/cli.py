@@ -182,6 +182,7 @@ PLANT_FLAGS = ConfigFlags(
         "joint-friction": ("joint_friction",),
         "obs-noise": ("obs_noise",),
         "action-delay": ("action_delay",),
+        "limits": ("limits",),
     },
 )
 
@@ -196,6 +197,7 @@ TASK_FLAGS = ConfigFlags(
         "known-delay": ("world.known_delay",),
         "compensate-gravity": ("world.compensate_gravity",),
         "action-weight": ("cost.action_weight",),
+        "speed-weight": ("cost.speed_weight",),
         "descent-height": ("cost.descent_height",),
         "descent-steps": ("cost.descent_steps",),
         **{flag: (f"plant.{name}",) for flag, (name,) in PLANT_FLAGS.renames.items()},

@@ -50,7 +50,7 @@ from lolgps_torch.sim.latency import DelayConfig, DelayEstimate, estimate_delay,
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
-from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
+from lolgps_torch.sim.rollout import Actor, Rollouts, Sampler, rollout_rows
 from lolgps_torch.sim.simulator import Simulator, World, WorldConfig, check_plant, require
 from lolgps_torch.sim.world import PegWorld
 from lolgps_torch.state import StateLayout
@@ -79,7 +79,9 @@ class TaskConfig:
     :param sim: the simulator that steps the worlds: pybullet, or mujoco (the nominal plant
         only; ``pip install -e '.[mujoco]'``).
     :param mjcf: ``urdf`` names an MJCF file (``--mjcf``), read as the URDF
-        :func:`~lolgps_torch.robot.mjcf.mjcf_urdf` makes of it; needs ``sim`` mujoco."""
+        :func:`~lolgps_torch.robot.mjcf.mjcf_urdf` makes of it; needs ``sim`` mujoco.
+    :param velocity_limit: the joints' velocity limits (rad/s), one for every joint or one per
+        actuated joint, in place of the URDF's (or of those derived where it gives none)."""
 
     urdf: str
     ee_link: str | None = None
@@ -94,12 +96,13 @@ class TaskConfig:
     plant: PlantConfig = field(default_factory=PlantConfig)
     sim: Simulator = "pybullet"
     mjcf: bool = False
+    velocity_limit: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
-        if self.ee_link is not None and not self.ee_link:
-            raise LolgpsError("--ee-link must name a link")
-        if self.base_link is not None and not self.base_link:
-            raise LolgpsError("--base-link must name a link")
+        check_speeds(self.velocity_limit)
+        for flag, link in (("--ee-link", self.ee_link), ("--base-link", self.base_link)):
+            if link is not None and not link:
+                raise LolgpsError(f"{flag} must name a link")
         self.held()  # checks the pairs
         if not (math.isfinite(self.scale) and 0.0 < self.scale <= 1.0):
             raise LolgpsError(f"--scale must be in (0, 1], got {self.scale}")
@@ -139,6 +142,14 @@ class TaskConfig:
                 )
             held[name] = value
         return held
+
+
+def check_speeds(speeds: Sequence[float]) -> None:
+    """Raise :class:`LolgpsError` unless every one of ``speeds`` (``--velocity-limit``) is
+    positive and finite."""
+    bad = [v for v in speeds if not (math.isfinite(v) and v > 0.0)]
+    if bad:
+        raise LolgpsError(f"--velocity-limit must be positive and finite, got {bad[0]}")
 
 
 # Reach (m) of the arm the default geometry is made for (robots/kuka_peg.urdf, from the shoulder)
@@ -217,8 +228,9 @@ def _pinned(
 
 
 def load_task_arm(config: TaskConfig) -> ArmSpec:
-    """The arm of the task ``config`` describes (:func:`~lolgps_torch.robot.arm.load_arm`)."""
-    return load_arm(
+    """The arm of the task ``config`` describes (:func:`~lolgps_torch.robot.arm.load_arm`),
+    with the velocity limits it gives."""
+    arm = load_arm(
         config.urdf,
         config.ee_link,
         config.peg,
@@ -227,13 +239,22 @@ def load_task_arm(config: TaskConfig) -> ArmSpec:
         hold=config.held(),
         mjcf=config.mjcf,
     )
+    given = config.velocity_limit
+    if not given:
+        return arm
+    if len(given) not in (1, arm.dof):
+        raise LolgpsError(
+            f"--velocity-limit takes one speed or one per actuated joint ({arm.dof}: "
+            f"{', '.join(arm.joint_names)}), got {len(given)}"
+        )
+    return replace(arm, velocity=given * arm.dof if len(given) == 1 else given)
 
 
 def peg_cost(config: CostConfig, arm: ArmSpec, kinematics: PegKinematics,
              layout: StateLayout) -> PegCost:  # fmt: skip
-    """The l12 cost of ``arm``'s task, its torques scaled by the arm's effort limits."""
-    effort = torch.tensor(arm.effort, dtype=torch.float64)
-    return PegCost(config, kinematics, layout, effort)
+    """The l12 cost of ``arm``'s task, its torques and speeds scaled by the arm's limits."""
+    effort, velocity = (torch.tensor(v, dtype=torch.float64) for v in (arm.effort, arm.velocity))
+    return PegCost(config, kinematics, layout, effort, velocity)
 
 
 @dataclass(frozen=True)
@@ -491,21 +512,21 @@ class PegTask:
         the cost; each call's sensor noise is new."""
         batch, self._batches = self._batches, self._batches + 1
         if self.pool is None:
-            x, u, final = rollout_rows(self.sampler, act, offsets, range(len(offsets)), batch)
+            rolled = rollout_rows(self.sampler, act, offsets, range(len(offsets)), batch)
         else:
-            rolled = self.pool.rollout(act, offsets, batch)
-            x, u, final = (part.to(self.device) for part in rolled)
-        return self.score(x, u, final, offsets)
+            rolled = Rollouts(
+                *(part.to(self.device) for part in self.pool.rollout(act, offsets, batch))
+            )
+        return self.score(rolled, offsets)
 
-    def score(
-        self, x: Tensor, u: Tensor, final: Tensor, offsets: Sequence[tuple[float, float]]
-    ) -> Trajectories:
-        """Rollouts ``x: [N, T+1, dX]`` (``x_T`` after the last action), ``u: [N, T, dU]``
-        with final tip distances ``[N]`` at the hole ``offsets``, with their per-step cost
-        ``l(x_t, u_t)`` and success (``final < success_threshold``)."""
+    def score(self, rolled: Rollouts, offsets: Sequence[tuple[float, float]]) -> Trajectories:
+        """Rollouts (``x: [N, T+1, dX]``, ``x_T`` after the last action) at the hole
+        ``offsets``, with their per-step cost ``l(x_t, u_t)`` and success
+        (``final < success_threshold``, and no fault)."""
+        x, u, final, fault = rolled
         cost = self.cost.evaluate(x[:, :-1], u, self.targets(offsets)[:, None])
-        success = final < self.config.world.success_threshold
-        return Trajectories(x[:, :-1], u, cost, final, success, x[:, -1])
+        success = (final < self.config.world.success_threshold) & ~fault
+        return Trajectories(x[:, :-1], u, cost, final, success, x[:, -1], fault)
 
     def close(self) -> None:
         self.sampler.close()

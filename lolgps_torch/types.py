@@ -78,8 +78,9 @@ class Trajectories(NamedTuple):
 
     x: ``[N, T, dX]`` states, u: ``[N, T, dU]`` actions, cost: ``[N, T]`` per-step cost,
     final_distance: ``[N]`` peg-tip distance to the hole-floor target at the last step (m),
-    success: ``[N]`` bool, ``final_distance < success_threshold``,
-    final_state: ``[N, dX]`` the state ``x_T`` after the last action (stored, not learned from).
+    success: ``[N]`` bool, ``final_distance < success_threshold`` and no fault,
+    final_state: ``[N, dX]`` the state ``x_T`` after the last action (stored, not learned from),
+    fault: ``[N]`` bool, the arm's controller stopped the rollout (a limit passed).
     """
 
     x: Tensor
@@ -88,10 +89,17 @@ class Trajectories(NamedTuple):
     final_distance: Tensor
     success: Tensor
     final_state: Tensor
+    fault: Tensor
 
     @property
     def N(self) -> int:
         return int(self.x.shape[0])
+
+    @property
+    def scored_distance(self) -> Tensor:
+        """``[N]`` the final distance, inf where the rollout faulted: a rollout the arm's
+        controller stopped never counts as reaching the hole."""
+        return self.final_distance.masked_fill(self.fault, float("inf"))
 
 
 class DistillBatch(NamedTuple):

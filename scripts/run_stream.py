@@ -93,6 +93,7 @@ STREAM_FLAGS = ConfigFlags(
         "guard-brake": ("policy.guard_brake",),
         "guard-hover": ("policy.guard_hover",),
         "guard-hover-time": ("policy.guard_hover_time",),
+        "guard-limit": ("policy.guard_limit",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),
         "dynamics-prior": ("local.dynamics.prior",),
@@ -287,6 +288,7 @@ def _record_line(record: IterationRecord | IdentifiedRecord | DistillRecord, tot
         f"condition {record.condition + 1}/{total}  iter {record.iteration:2d}  "
         f"cost {record.mean_cost:8.2f}  distance mean {record.mean_distance:.3f} "
         f"best {record.best_distance:.3f}  success {record.success_rate:4.0%}  "
+        f"faults {record.faults}  "
         f"[{record.time_sample:.2f}s sample, {record.time_fit:.2f}s fit, "
         f"{record.time_cstep:.2f}s C-step]"
     )
@@ -297,7 +299,8 @@ def _condition_line(entry: ConditionSummary, total: int) -> str:
     return (
         f"condition {entry.condition + 1}/{total} done: first success at iteration "
         f"{entry.first_success_iteration}, p_cur distance {entry.local_final_distance:.4f}, "
-        f"global policy distance {entry.policy_final_distance_after:.4f}{failure}"
+        f"global policy distance {entry.policy_final_distance_after:.4f}, faults "
+        f"{entry.faults}{failure}"
     )
 
 

@@ -352,7 +352,7 @@ def test_a_final_controller_that_misses_hands_d_g_to_the_newest_tried_one_that_s
 
     def teacher(failure: str | None = None) -> tuple[object, int, float]:
         asked.clear()
-        labels, local = learner.teacher(Outcome(found, final, 30, failure), (0.0, 0.0))
+        labels, local = learner.teacher(Outcome(found, final, 30, failure, 0), (0.0, 0.0))
         return labels.p_cur, labels.iteration, local
 
     assert [labels.iteration for labels in found.tried] == [0, 1, 3]
@@ -362,7 +362,7 @@ def test_a_final_controller_that_misses_hands_d_g_to_the_newest_tried_one_that_s
     distances["final"], distances["it1"] = 0.1, 0.3
     assert teacher() == ("final", 5, 0.1)  # all miss: the closest
     assert teacher("iteration 4: diverged") == ("it2", 3, 0.15)
-    assert learner.teacher(Outcome(Successes(), final, 30, "diverged"), (0.0, 0.0)) == (
+    assert learner.teacher(Outcome(Successes(), final, 30, "diverged", 0), (0.0, 0.0)) == (
         final,
         float("inf"),
     )

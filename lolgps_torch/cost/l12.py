@@ -1,13 +1,17 @@
 """The peg-insertion cost (paper eq. 9, docs/ALGORITHM.md section 2) and its quadratic expansion.
 
-    l(x_t, u_t) = 1/2 sum_j wu_j u_j^2  +  m_t * l12(z_t),
+    l(x_t, u_t) = 1/2 sum_j wu_j u_j^2  +  1/2 sum_j wv_j q-dot_j^2  +  m_t * l12(z_t),
     l12(z)      = 1/2 l2 |z|^2 + l1 sqrt(gamma + |z|^2),
     z_t         = A (p(q_t) - p*_t),     p*_t = p* + h_t e_z,   h_t = h_0 max(0, 1 - t / t_d),
 
 where p(q) stacks the tip and top points (6), p* their targets, and A (8 x 6) holds
 sqrt(per-axis point weights) on its first six rows and sqrt(tilt weight) times the lateral
 offset between tip and top on the last two.  m_t is 1, or ``final_multiplier`` at t = T-1.
-wu_j = action_weight / effort_j^2, so the action cost is in units of the effort limits.
+wu_j = action_weight / effort_j^2, so the action cost is in units of the effort limits, and
+wv_j = speed_weight / v_j^2 (v_j the joint's velocity limit), so the speed cost is in units of
+the velocity limits: the C-step sees it exactly (it is quadratic in the state), and keeps the
+first commands from flinging the arm towards the lifted target faster than its joints may move
+(docs/ALGORITHM.md section 2; ``scripts/research/speed_limits.py``).
 
 The descent schedule (h_0 = ``descent_height``, t_d = ``descent_steps``; off when either is
 0) lifts both targets by h_t, so the optimal trajectory first aligns over the hole and
@@ -20,12 +24,14 @@ The cost depends on x only through q.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.state import StateLayout
 from lolgps_torch.types import QuadraticCost
@@ -44,6 +50,7 @@ class CostConfig:
     :param action_weight: wu in units of the effort limits.
     :param descent_height: h_0, the height (m) the targets are lifted by at t = 0.
     :param descent_steps: t_d, the step at which the lifted targets reach p*.
+    :param speed_weight: wv in units of the velocity limits.
     """
 
     l1: float = 0.1
@@ -56,6 +63,11 @@ class CostConfig:
     action_weight: float = 1.0
     descent_height: float = 0.2
     descent_steps: int = 40
+    speed_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.speed_weight) and self.speed_weight >= 0.0):
+            raise LolgpsError(f"--speed-weight must be >= 0 and finite, got {self.speed_weight}")
 
 
 class CostExpansion(NamedTuple):
@@ -74,13 +86,25 @@ class PegCost:
     """Evaluates and expands the cost for batches of trajectories ``[N, T]``."""
 
     def __init__(
-        self, config: CostConfig, kinematics: PegKinematics, layout: StateLayout, effort: Tensor
+        self,
+        config: CostConfig,
+        kinematics: PegKinematics,
+        layout: StateLayout,
+        effort: Tensor,
+        velocity: Tensor | None = None,
     ) -> None:
+        """``effort``, ``velocity``: the joints' torque and velocity limits ``[dU]`` (no
+        velocity limits: no speed cost)."""
         self.config = config
         self.kinematics = kinematics
         self.layout = layout
         dev = kinematics.device
         self.wu = config.action_weight / effort.to(dtype=torch.float64, device=dev) ** 2
+        self.wv = (
+            torch.zeros_like(self.wu)
+            if velocity is None
+            else config.speed_weight / velocity.to(dtype=torch.float64, device=dev) ** 2
+        )
         axis = torch.tensor(
             [config.lateral_weight, config.lateral_weight, config.vertical_weight],
             dtype=torch.float64,
@@ -121,8 +145,12 @@ class PegCost:
         targets_t = self._targets(targets, x.shape[-2])
         d = (self.kinematics.points(q) - targets_t).flatten(-2)  # [N, T, 6]
         value, _ = self._l12(d @ self.A.T)
-        action = 0.5 * (self.wu * u * u).sum(-1)
-        return action + self._multiplier(x.shape[-2], x) * value
+        return self._effort(x, u) + self._multiplier(x.shape[-2], x) * value
+
+    def _effort(self, x: Tensor, u: Tensor) -> Tensor:
+        """The action and speed terms ``1/2 sum wu u^2 + 1/2 sum wv q-dot^2``, ``[N, T]``."""
+        qd = x[..., self.layout.qd]
+        return 0.5 * (self.wu * u * u).sum(-1) + 0.5 * (self.wv * qd * qd).sum(-1)
 
     def expand(self, x: Tensor, u: Tensor, targets: Tensor) -> CostExpansion:
         """Value, gradient and Gauss-Newton Hessian at every sample and step."""
@@ -143,14 +171,17 @@ class PegCost:
         lq = m[:, None] * torch.einsum("ntzq,ntz->ntq", AJ, g)
         lqq = m[:, None, None] * AJ.transpose(-1, -2) @ H @ AJ
 
+        qd = self.layout.qd
         lx = x.new_zeros(N, T, dX)
         lx[..., self.layout.q] = lq
+        lx[..., qd] = self.wv * x[..., qd]
         lxx = x.new_zeros(N, T, dX, dX)
         lxx[..., self.layout.q, self.layout.q] = lqq
+        lxx[..., qd, qd] = torch.diag_embed(self.wv.expand(N, T, dU))
         lu = self.wu * u
         luu = torch.diag_embed(self.wu.expand(N, T, dU))
         lux = x.new_zeros(N, T, dU, dX)
-        total = 0.5 * (self.wu * u * u).sum(-1) + m * value
+        total = self._effort(x, u) + m * value
         return CostExpansion(total, lx, lu, lxx, luu, lux)
 
 

@@ -27,6 +27,7 @@ class IterationRecord:
     mean_distance: float
     best_distance: float
     success_rate: float
+    faults: int
     epsilon: float
     eta: float
     kl: float
@@ -102,6 +103,8 @@ class ConditionSummary:
         while it missed a condition).
     :param policy_rollouts: the global policy's rollouts in the S-step (its check and visits).
     :param visited_rows: states the policy visited in the S-step that got a label.
+    :param faults: rollouts drawn at the condition that the arm's controller stopped at a
+        limit (counted as failures).
     """
 
     condition: int
@@ -120,6 +123,7 @@ class ConditionSummary:
     repairs: int = 0
     policy_rollouts: int = 0
     visited_rows: int = 0
+    faults: int = 0
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

@@ -191,11 +191,17 @@ def _stage_results(
         stats = aggregate(
             per_position["final_distance"], per_position["total_cost"], per_position["success"]
         )
+        for group, faults, speeds in zip(
+            stats, per_position["fault"], per_position["peak_speed"], strict=True
+        ):
+            group["faults"], group["peak_speed"] = sum(faults), max(speeds, default=0.0)
         stages.append(
             {
                 **info.stages[s],
                 "checkpoint": policy.name,
                 "groups": stats,
+                "faults": sum(g["faults"] for g in stats),
+                "peak_speed": max(g["peak_speed"] for g in stats),
                 "per_position": per_position,
             }
         )

@@ -35,33 +35,37 @@ from lolgps_torch.evaluation.worker import (
 )
 from lolgps_torch.progress import Bar
 from lolgps_torch.sim.pool import main_script_hidden
+from lolgps_torch.sim.rollout import Rollouts as SimRollouts
 from lolgps_torch.task import PegTask, TaskConfig
 
 
 class JobResult(NamedTuple):
     """Per position of a :class:`Job`: final tip distance (m), total cost, success, and the
     peak joint speed as a fraction of the joint's velocity limit, ``max_{t,j} |q-dot_j| /
-    v_j`` (above 1: a joint exceeded its limit)."""
+    v_j`` (above 1: a joint exceeded its limit), and whether the arm's controller stopped
+    the rollout at a limit (a fault, never a success)."""
 
     final_distance: list[float]
     total_cost: list[float]
     success: list[bool]
     peak_speed: list[float]
+    fault: list[bool]
 
 
 def _score(task: PegTask, job: Job, rollouts: Rollouts) -> JobResult:
     """Per position of ``job``: final tip distance, total cost ``sum_t l(x_t, u_t)`` and
     success, by :meth:`PegTask.score`, and the peak joint speed over the velocity limits."""
-    x, u, final = (torch.from_numpy(a) for a in rollouts)
+    rolled = SimRollouts(*(torch.from_numpy(a) for a in rollouts))
     with torch.no_grad():
-        scored = task.score(x, u, final, job.positions)
-    limits = torch.tensor(task.arm.velocity, dtype=x.dtype)
-    speed = (x[..., task.layout.qd].abs() / limits).amax(dim=(1, 2))
+        scored = task.score(rolled, job.positions)
+    limits = torch.tensor(task.arm.velocity, dtype=rolled.x.dtype)
+    speed = (rolled.x[..., task.layout.qd].abs() / limits).amax(dim=(1, 2))
     return JobResult(
         scored.final_distance.tolist(),
         scored.cost.sum(dim=1).tolist(),
         scored.success.tolist(),
         speed.tolist(),
+        scored.fault.tolist(),
     )
 
 

@@ -120,9 +120,7 @@ def record_clips(
     offsets = [records[c].offset for c in conditions]
     clips: dict[tuple[str, int], Clip] = {}
     if who in ("policy", "both"):
-        x, _, _ = task.sampler.rollout(
-            policy_actor(loaded.policy(after), task.model.stopping), offsets
-        )
+        x = task.sampler.rollout(policy_actor(loaded.policy(after), task.model.stopping), offsets).x
         for c, off, xs in zip(conditions, offsets, x, strict=True):
             clips["policy", c] = _clip(task, "policy", c, off, xs)
     if who in ("controller", "both"):
@@ -131,7 +129,7 @@ def record_clips(
             p_cur = records[c].p_cur
             if p_cur is None:
                 raise LolgpsError(f"{loaded.folder.replay_path}: condition {c} stores no p_cur")
-            x, _, _ = task.sampler.rollout(linear_gaussian_actor(p_cur, zero), [off])
+            x = task.sampler.rollout(linear_gaussian_actor(p_cur, zero), [off]).x
             clips["controller", c] = _clip(task, "controller", c, off, x[0])
     kinds = ("policy", "controller") if who == "both" else (who,)
     return [clips[kind, c] for c in conditions for kind in kinds]

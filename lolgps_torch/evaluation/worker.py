@@ -61,11 +61,13 @@ class PolicyState(NamedTuple):
 
 class Rollouts(NamedTuple):
     """The rollouts of a :class:`Job`, one per position, as float64 arrays: states x
-    ``[N, T, dX]``, actions u ``[N, T, dU]`` and final tip distances ``[N]`` (m)."""
+    ``[N, T, dX]``, actions u ``[N, T, dU]``, final tip distances ``[N]`` (m) and faults
+    ``[N]`` (bool: the arm's controller stopped the rollout at a limit)."""
 
     x: np.ndarray
     u: np.ndarray
     final_distance: np.ndarray
+    fault: np.ndarray
 
 
 class Failure(NamedTuple):
@@ -132,8 +134,7 @@ class PolicyRoller:
     def __call__(self, job: Job) -> Rollouts:
         """One rollout per position of ``job``."""
         actor = policy_actor(self.policies[job.policy], self.stopping)
-        x, u, final = self.sampler.rollout(actor, list(job.positions))
-        return Rollouts(x.numpy(), u.numpy(), final.numpy())
+        return Rollouts(*(a.numpy() for a in self.sampler.rollout(actor, list(job.positions))))
 
 
 class SetupRoller:

@@ -38,11 +38,16 @@ from lolgps_torch.types import (
 
 
 def guard_of(
-    data: list[ConditionSamples], layout: StateLayout, cfg: PolicyConfig, depth: float
+    data: list[ConditionSamples],
+    layout: StateLayout,
+    cfg: PolicyConfig,
+    depth: float,
+    velocity: Tensor,
 ) -> Guard | None:
     """The guard :func:`fit_guard` fits to the conditions' D_g ``data`` (None where none holds
-    a full rollout; states as ``layout`` says), with ``cfg``'s margins; its hover point, if
-    any, ``cfg.guard_hover`` above the mouth of a hole ``depth`` (m) deep."""
+    a full rollout; states as ``layout`` says), with ``cfg``'s margins and the arm's velocity
+    limits ``velocity [dU]``; its hover point, if any, ``cfg.guard_hover`` above the mouth of a
+    hole ``depth`` (m) deep."""
     full = [d for d in data if d.final_state is not None and d.x.shape[0] > 0]
     if not full:
         return None
@@ -52,7 +57,7 @@ def guard_of(
         hover = None if cfg.guard_hover is None else (depth + cfg.guard_hover, cfg.guard_hover_time)
         return fit_guard(
             x, mean_cur, layout, cfg.guard_torque, cfg.guard_speed, cfg.guard_window,
-            cfg.guard_retreat, cfg.guard_brake, hover,
+            cfg.guard_retreat, cfg.guard_brake, hover, cfg.guard_limit * velocity,
         )  # fmt: skip
 
 
@@ -181,7 +186,10 @@ class Distiller:
 
     def _set_guard(self, policy: GaussianPolicy, data: list[ConditionSamples]) -> None:
         """The policy's guard from every condition's D_g (:func:`guard_of`)."""
-        guard = guard_of(data, self.task.layout, self.config, self.task.config.world.depth)
+        velocity = torch.tensor(self.task.arm.velocity, dtype=torch.float64)
+        guard = guard_of(
+            data, self.task.layout, self.config, self.task.config.world.depth, velocity
+        )
         if guard is not None:
             policy.set_guard(guard)
 

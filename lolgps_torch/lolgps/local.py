@@ -314,10 +314,12 @@ class LocalLearner:
         step is retried at most half as large). A step taken at the smallest multiplier is
         accepted whatever its cost: p_cur is then close to the accepted controller, and its
         samples re-measure that controller's cost (a lucky low draw of the accepted cost would
-        otherwise reject every later step)."""
-        dynamics = self.fitter.update(samples.x, samples.u)
-        expansion = self.task.cost.expand(samples.x, samples.u, self.targets)
-        fit = Fit(p_act, dynamics, to_quadratic(expansion, samples.x, samples.u))
+        otherwise reject every later step). The dynamics and the cost are fitted to the
+        samples the arm's controller did not stop (:func:`moved`); the step is judged by all."""
+        moving = moved(samples)
+        dynamics = self.fitter.update(moving.x, moving.u)
+        expansion = self.task.cost.expand(moving.x, moving.u, self.targets)
+        fit = Fit(p_act, dynamics, to_quadratic(expansion, moving.x, moving.u))
         expected = float(laplace_cost(p_act, dynamics, fit.cost))
         totals = samples.cost.sum(1)
         last = self.accepted
@@ -338,7 +340,7 @@ class LocalLearner:
         elif math.isinf(self.start_cost):  # the first samples are the hold's
             self.start_cost = float(totals.mean())
         cost, cost_se2 = mean_and_se2(totals)
-        self.accepted = Accepted(fit, expected, self.p_cur, cost, cost_se2, samples.x)
+        self.accepted = Accepted(fit, expected, self.p_cur, cost, cost_se2, moving.x)
         return fit
 
     def improve(self, fit: Fit, p_bar: LinearGaussian) -> tuple[float, float, float]:
@@ -350,6 +352,15 @@ class LocalLearner:
 
 
 Linearizer = Callable[[Tensor], LinearGaussian]
+
+
+def moved(samples: Trajectories) -> Trajectories:
+    """The samples the arm's controller did not stop at a limit (all of them where it stopped
+    every one): a stopped arm stays braked whatever it is commanded, so the rest of its
+    rollout is no evidence of the dynamics."""
+    if bool(samples.fault.all()):
+        return samples
+    return Trajectories(*(field[~samples.fault] for field in samples))
 
 
 def iterate(
@@ -408,6 +419,7 @@ def iteration_record(
         mean_distance=float(samples.final_distance.mean()),
         best_distance=float(samples.final_distance.min()),
         success_rate=float(samples.success.double().mean()),
+        faults=int(samples.fault.sum()),
         epsilon=epsilon,
         eta=eta,
         kl=kl,

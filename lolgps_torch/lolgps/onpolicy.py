@@ -137,7 +137,7 @@ class PolicyVisits:
             if label and teacher.labels is not None and teacher.samples > 0
         ]
         visited = VisitedRows.cat(parts) if parts else None
-        return Visit(runs.final_distance[:C].tolist(), visited, len(offsets))
+        return Visit(runs.scored_distance[:C].tolist(), visited, len(offsets))
 
 
 class Checked(NamedTuple):

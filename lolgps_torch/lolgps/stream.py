@@ -157,13 +157,14 @@ class StreamConfig:
 
 class Outcome(NamedTuple):
     """What local learning at one condition produced: its successes, the final controllers
-    with the iteration count, the rollouts drawn, and a numerical failure that ended it early
-    (None: none)."""
+    with the iteration count, the rollouts drawn, a numerical failure that ended it early
+    (None: none), and the rollouts the arm's controller stopped at a limit."""
 
     found: Successes
     final: Labels
     rollouts: int
     failure: str | None
+    faults: int
 
 
 class Successes:
@@ -239,6 +240,7 @@ class StreamLearner:
             repairs=repairs,
             policy_rollouts=checked.rollouts,
             visited_rows=0 if checked.visited is None else checked.visited.R,
+            faults=outcome.faults,
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
@@ -298,7 +300,7 @@ class StreamLearner:
         already spent at the condition."""
         cfg = self.config
         p_pre: LinearGaussian | None = None
-        alpha, found, iterations, failure = cfg.alpha, Successes(), 0, None
+        alpha, found, iterations, failure, faults = cfg.alpha, Successes(), 0, None, 0
         try:
             for i in range(cfg.max_iterations):
                 iterations, p_cur = i + 1, learner.p_cur
@@ -308,6 +310,7 @@ class StreamLearner:
                     learner, p_act, linearize, cfg.cstep_anchor == "pre", (index, i, used)
                 )
                 self.log(record)
+                faults += record.faults
                 found.add(samples, Labels(p_cur, p_pre, i))
                 alpha = cfg.next_alpha(alpha)
                 if len(found.kept) >= phases:
@@ -315,7 +318,8 @@ class StreamLearner:
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"
         rollouts = probes + iterations * cfg.local.samples
-        return Outcome(found, Labels(learner.p_cur, p_pre, iterations), rollouts, failure)
+        final = Labels(learner.p_cur, p_pre, iterations)
+        return Outcome(found, final, rollouts, failure, faults)
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own
@@ -382,7 +386,7 @@ def condition_seed(config: StreamConfig, index: int) -> int:
 def noiseless_distance(task: PegTask, p: LinearGaussian, offset: tuple[float, float]) -> float:
     """Final distance (m) of the controller ``p``'s noiseless rollout at ``offset``."""
     zero = torch.zeros(1, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
-    return float(task.sample(linear_gaussian_actor(p, zero), [offset]).final_distance[0])
+    return float(task.sample(linear_gaussian_actor(p, zero), [offset]).scored_distance[0])
 
 
 def policy_distances(
@@ -395,6 +399,6 @@ def policy_distances(
     try:
         return task.sample(
             policy_actor(policy, task.model.stopping), offsets
-        ).final_distance.tolist()
+        ).scored_distance.tolist()
     except NumericalError:
         return [math.inf] * len(offsets)

@@ -7,10 +7,11 @@ keeps the policy inside what its teachers did, with bounds fitted to every condi
     u_t = clip(mu_theta(x_t) (+ noise), -tau, tau)      tau_j = torque_margin max |mu_cur,j|
     while |q-dot_j(t)| > v_j(t) for some joint, or d_t - min_{s <= t} d_s > rho:
         u_t = clip(-beta M(q_t) q-dot_t / dt, -tau, tau)
-    v_j(t) = speed_margin max_{m, s >= t - w} |q-dot_j^m(s)|
+    v_j(t) = min(speed_margin max_{m, s >= t - w} |q-dot_j^m(s)|, limit_j)
     rho = retreat_margin + max_{m, t} (d^m_t - min_{s <= t} d^m_s)
 
-(tau_j infinite unless a torque margin is given: the bound cost reaches to far holes and kept
+(limit_j a share of joint j's velocity limit, so that the brake acts before the arm's own
+controller stops the arm; tau_j infinite unless a torque margin is given: the bound cost reaches to far holes and kept
 the brake from stopping a flung arm; d_t = |p_tip - p*_tip| the tip's distance from its
 target). The trip speed at step t is the largest speed D_g still reaches from ``w`` steps
 before t on (``w`` None: one speed for every step, the largest in D_g): while the arm moves in
@@ -82,13 +83,15 @@ def fit_guard(
     retreat_margin: float | None,
     beta: float,
     hover: tuple[float, float] | None = None,
+    limit: Tensor | None = None,
 ) -> Guard:
     """The guard of rollouts with states ``x: [M, T+1, dX]`` (``x_T`` the state after the last
     action; its blocks as ``layout`` says) and teacher means ``mean_cur: [M, T, dU]`` (M >= 1),
     braking ``beta`` of the speeds away per step; ``torque_margin`` None leaves torques unbounded;
     ``window`` the steps before t from which on D_g's largest speed sets step t's trip speed
     (None: over every step); ``retreat_margin`` None: no retreat trips the brake; ``hover``
-    (h, tau_h) steers the braked arm above its target (None: stops it)."""
+    (h, tau_h) steers the braked arm above its target (None: stops it); ``limit [dU]`` the
+    highest trip speed of each joint (None: D_g's alone)."""
     if x.shape[0] == 0:
         raise LolgpsError("the policy's guard needs at least one rollout")
     speeds = x[..., layout.qd]  # [M, T+1, n]
@@ -107,7 +110,10 @@ def fit_guard(
     retreat = (distance - distance.cummin(1).values).amax()
     retreat = retreat + (math.inf if retreat_margin is None else retreat_margin)
     above = torque.new_tensor([math.nan, math.nan] if hover is None else hover)
-    return Guard(torque, speed_margin * envelope, torch.tensor(beta).to(torque), retreat, above)
+    trip = speed_margin * envelope
+    if limit is not None:
+        trip = torch.minimum(trip, limit.to(trip))
+    return Guard(torque, trip, torch.tensor(beta).to(torque), retreat, above)
 
 
 def tip_distance(x: Tensor, layout: StateLayout) -> Tensor:

@@ -71,6 +71,8 @@ class PolicyConfig:
         the final policy then ended within 0.16 m of its hole (0.42 m with None; docs/HISTORY.md,
         "the hover").
     :param guard_hover_time: the time constant (s) of that approach.
+    :param guard_limit: the brake also trips where a joint passes this share of its velocity
+        limit, before the arm's own controller would stop the arm there.
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
         scaled targets); the policy itself stays float64. float32 takes a third less loop
         time and reached as many positions over 38 paired runs, but fewer on the published
@@ -96,6 +98,7 @@ class PolicyConfig:
     guard_retreat: float | None = 0.05
     guard_hover: float | None = 0.05
     guard_hover_time: float = 1.0
+    guard_limit: float = 0.8
 
     def __post_init__(self) -> None:
         check_fields(
@@ -117,6 +120,7 @@ class PolicyConfig:
                 "guard_retreat": self.guard_retreat is None or 0.0 <= self.guard_retreat < math.inf,
                 "guard_hover": self.guard_hover is None or 0.0 <= self.guard_hover < math.inf,
                 "guard_hover_time": 0.0 < self.guard_hover_time < math.inf,
+                "guard_limit": 0.0 < self.guard_limit <= 1.0,
             },
         )
 

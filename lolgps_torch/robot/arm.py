@@ -33,7 +33,13 @@ import numpy as np
 import torch
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.effort import EFFORT_MARGIN, derived_effort
+from lolgps_torch.robot.effort import (
+    EFFORT_MARGIN,
+    JOINT_SPEED,
+    TIP_SPEED,
+    derived_effort,
+    derived_velocity,
+)
 from lolgps_torch.robot.packages import resolve_mesh
 from lolgps_torch.robot.peg import (
     ATTACHED_PEG,
@@ -46,7 +52,6 @@ from lolgps_torch.robot.peg import (
 )
 from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import (
-    DEFAULT_VELOCITY,
     INERTIA_ENTRIES,
     INERTIA_KEYS,
     ArmSpec,
@@ -150,10 +155,12 @@ def load_arm(
         peg_axis=axis,
         base_link=start,
         held=held,
+        unbounded=tuple(j.name for j in actuated if not _bounded(j)),
     )
     if massless:
         _check_mass_matrix(arm, massless, path)
-    return _with_derived_effort(arm, unknown, path) if unknown else arm
+    slow = [j.name for j, lim in zip(actuated, lims, strict=True) if lim[3] == 0.0]
+    return _with_derived_limits(arm, unknown, slow, path) if unknown or slow else arm
 
 
 def _arm_chain(
@@ -211,32 +218,43 @@ def _check_mass_matrix(arm: ArmSpec, massless: Sequence[str], path: str) -> None
         )
 
 
-def _with_derived_effort(arm: ArmSpec, unknown: Sequence[str], path: str) -> ArmSpec:
-    """``arm`` with the efforts of the joints ``unknown`` (published as 0 or not at all)
-    derived from the arm (:mod:`.effort`), in its URDF text too; one :class:`ArmWarning` per
-    joint names the value used."""
-    derived = dict(zip(arm.joint_names, derived_effort(arm), strict=True))
+def _with_derived_limits(
+    arm: ArmSpec, effort: Sequence[str], velocity: Sequence[str], path: str
+) -> ArmSpec:
+    """``arm`` with the torque limits of the joints ``effort`` and the velocity limits of the
+    joints ``velocity`` (each published as 0 or not at all) derived from the arm
+    (:mod:`.effort`), in its URDF text too; one :class:`ArmWarning` per kind names the values
+    used."""
+    derived = {"effort": dict(zip(arm.joint_names, arm.effort, strict=True)),
+               "velocity": dict(zip(arm.joint_names, arm.velocity, strict=True))}  # fmt: skip
     tree = ET.fromstring(arm.urdf_text)
-    for joint in tree.findall("joint"):
-        name = joint.get("name") or ""
-        if name not in unknown:
-            continue
-        limit = joint.find("limit")
-        if limit is None:  # a continuous joint published without one
-            limit = ET.SubElement(joint, "limit", velocity=repr(DEFAULT_VELOCITY))
-        limit.set("effort", repr(derived[name]))
-        warnings.warn(
-            f"{path}: joint {name!r}: <limit> effort is not given (0); using {derived[name]:.4g} "
-            f"N m, {EFFORT_MARGIN:g} x the larger of the joint's largest gravity torque and the "
-            f"torque that accelerates its load at g / reach; set effort to its real torque "
-            f"limit (N m)",
-            ArmWarning,
-            stacklevel=3,
-        )
-    effort = tuple(
-        derived[n] if n in unknown else e for n, e in zip(arm.joint_names, arm.effort, strict=True)
+    kinds = (
+        ("effort", effort, derived_effort, "N m", f"{EFFORT_MARGIN:g} x the larger of the "
+         "joint's largest gravity torque and the torque that accelerates its load at g / reach"),
+        ("velocity", velocity, derived_velocity, "rad/s", f"the speed that moves the peg tip "
+         f"at {TIP_SPEED:g} m/s, at most {JOINT_SPEED:g} rad/s (or give --velocity-limit)"),
+    )  # fmt: skip
+    joints = {joint.get("name"): joint for joint in tree.findall("joint")}
+    for attr, names, derive, unit, how in kinds:
+        values = dict(zip(arm.joint_names, derive(arm), strict=True)) if names else {}
+        for name in names:
+            derived[attr][name] = values[name]
+            limit = joints[name].find("limit")
+            if limit is None:  # a continuous joint published without one
+                limit = ET.SubElement(joints[name], "limit")
+            limit.set(attr, repr(values[name]))
+            warnings.warn(
+                f"{path}: joint {name!r}: <limit> {attr} is not given (0); using "
+                f"{values[name]:.4g} {unit}, {how}; set {attr} to its real limit ({unit})",
+                ArmWarning,
+                stacklevel=3,
+            )
+    return replace(
+        arm,
+        urdf_text=ET.tostring(tree, encoding="unicode"),
+        effort=tuple(derived["effort"][n] for n in arm.joint_names),
+        velocity=tuple(derived["velocity"][n] for n in arm.joint_names),
     )
-    return replace(arm, urdf_text=ET.tostring(tree, encoding="unicode"), effort=effort)
 
 
 def _parse(
@@ -322,16 +340,22 @@ def _actuated_joints(chain: list[yourdfpy.Joint], ee_link: str) -> list[yourdfpy
 
 def _limits(j: yourdfpy.Joint) -> tuple[float, float, float, float]:
     """(lower, upper, effort, velocity) of a checked joint (:func:`check_actuated_limit`;
-    effort 0 where it is not given); continuous joints get [-pi, pi] for placement."""
+    effort and velocity 0 where they are not given); continuous joints get [-pi, pi] for
+    placement."""
     lim = j.limit
     if lim is None:  # a continuous joint published without a <limit>
-        return -math.pi, math.pi, 0.0, DEFAULT_VELOCITY
-    if j.type == "continuous" or lim.lower is None or lim.upper is None:
+        return -math.pi, math.pi, 0.0, 0.0
+    if not _bounded(j):
         lower, upper = -math.pi, math.pi
     else:
         lower, upper = float(lim.lower), float(lim.upper)
-    velocity = float(lim.velocity) if lim.velocity else DEFAULT_VELOCITY
-    return lower, upper, float(lim.effort or 0.0), velocity
+    return lower, upper, float(lim.effort or 0.0), float(lim.velocity or 0.0)
+
+
+def _bounded(j: yourdfpy.Joint) -> bool:
+    """Whether the actuated joint ``j`` has position limits (not continuous, both given)."""
+    lim = j.limit
+    return j.type != "continuous" and lim is not None and None not in (lim.lower, lim.upper)
 
 
 def _is_gripper(j: yourdfpy.Joint) -> bool:

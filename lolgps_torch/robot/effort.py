@@ -1,4 +1,4 @@
-"""Torque limits for actuated joints described without one.
+"""Torque and velocity limits for actuated joints described without one.
 
 ROS-Industrial descriptions (KUKA KR 16, KR 120, KR 210; ABB IRB 140) publish ``effort="0"``
 on every joint as a placeholder for "not given".  The method needs a limit: the torque sent is
@@ -24,6 +24,21 @@ own rigid-body model (:mod:`.rigid_body`), at standard gravity:
 
 Both terms scale with the arm (torques as mass times length times g), so no arm needs a
 constant of its own.
+
+A joint published without a velocity limit (none, or ``velocity="0"``; an MJCF arm has none)
+gets one from the same poses, as the speed at which it alone moves the peg tip at
+:data:`TIP_SPEED`, at most :data:`JOINT_SPEED`:
+
+``v_j = min(TIP_SPEED / r_j, JOINT_SPEED)``
+
+* ``r_j``, the largest distance of the peg tip from joint j's axis over the poses;
+* ``TIP_SPEED = 1.5 m/s``: the published limits of the KUKA iiwa 14, the Panda and the xArm 6
+  move the tip at ``v_j r_j`` = 1.7, 2.5 and 3.0 m/s by their first joint (the tip speed a
+  maker allows the whole arm), so 1.5 is below each;
+* ``JOINT_SPEED = 2.3 rad/s`` caps the joints near the tip (``r_j`` small, the last one 0): the
+  wrists of the same arms are published at 2.27 to 3.14 rad/s.
+
+A derived limit is never faster than those arms allow a joint of the same lever.
 """
 
 from __future__ import annotations
@@ -37,19 +52,26 @@ from lolgps_torch.robot.spec import ArmSpec
 EFFORT_MARGIN = 3.0
 POSES = 1024
 STANDARD_GRAVITY = 9.81
+TIP_SPEED = 1.5  # m/s
+JOINT_SPEED = 2.3  # rad/s
 
 
-def joint_loads(arm: ArmSpec) -> tuple[Tensor, Tensor, float]:
-    """Over :data:`POSES` poses drawn uniformly (seed 0) within the joint limits, at standard
-    gravity: each actuated joint's largest gravity torque ``max |g_j(q)|`` (N m, ``[n]``), its
-    largest effective inertia ``max M_jj(q)`` (kg m^2, ``[n]``), and the largest distance (m)
-    of the peg tip from the first actuated joint's origin."""
-    dynamics = ArmDynamics(arm, gravity=STANDARD_GRAVITY)
+def poses(arm: ArmSpec) -> Tensor:
+    """:data:`POSES` joint angles ``[POSES, n]`` drawn uniformly (seed 0) within the limits."""
     lower, upper = (torch.tensor(b, dtype=torch.float64) for b in (arm.lower, arm.upper))
     draw = torch.rand(
         POSES, arm.dof, generator=torch.Generator().manual_seed(0), dtype=torch.float64
     )
-    q = lower + (upper - lower) * draw
+    return lower + (upper - lower) * draw
+
+
+def joint_loads(arm: ArmSpec) -> tuple[Tensor, Tensor, float]:
+    """Over :func:`poses`, at standard gravity: each actuated joint's largest gravity torque
+    ``max |g_j(q)|`` (N m, ``[n]``), its largest effective inertia ``max M_jj(q)`` (kg m^2,
+    ``[n]``), and the largest distance (m) of the peg tip from the first actuated joint's
+    origin."""
+    dynamics = ArmDynamics(arm, gravity=STANDARD_GRAVITY)
+    q = poses(arm)
     gravity = dynamics.gravity_torque(q).abs().amax(0)
     inertia = torch.diagonal(dynamics.mass_matrix(q), dim1=-2, dim2=-1).amax(0)
     frames = dynamics.frames(q)
@@ -64,3 +86,21 @@ def derived_effort(arm: ArmSpec) -> tuple[float, ...]:
     gravity, inertia, reach = joint_loads(arm)
     floor = inertia * STANDARD_GRAVITY / reach
     return tuple(float(v) for v in EFFORT_MARGIN * torch.maximum(gravity, floor))
+
+
+def joint_levers(arm: ArmSpec) -> Tensor:
+    """Each actuated joint's largest distance (m, ``[n]``) of the peg tip from its axis, over
+    :func:`poses`."""
+    dynamics = ArmDynamics(arm, gravity=STANDARD_GRAVITY)
+    frames = dynamics.frames(poses(arm))
+    axes = dynamics.motion_subspace(frames)[..., :3]  # [POSES, n, 3], unit
+    lever = dynamics.points(frames)[..., None, 0, :] - frames.p  # tip from each joint's origin
+    radial = lever - (lever * axes).sum(-1, keepdim=True) * axes
+    return radial.norm(dim=-1).amax(0)
+
+
+def derived_velocity(arm: ArmSpec) -> tuple[float, ...]:
+    """Each actuated joint's velocity limit derived from the arm (rad/s), as the module
+    docstring states: ``min(TIP_SPEED / r_j, JOINT_SPEED)``."""
+    lever = joint_levers(arm).clamp(min=TIP_SPEED / JOINT_SPEED)
+    return tuple(float(v) for v in TIP_SPEED / lever)

@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from lolgps_torch.errors import LolgpsError
-from lolgps_torch.robot.spec import DEFAULT_VELOCITY, add_inertial
+from lolgps_torch.robot.spec import add_inertial
 
 ROOT_LINK = "world"
 # MuJoCo's enum values an arm's model is read with, as plain integers: from 4.0 an enum no
@@ -184,8 +184,8 @@ def _moving(element: ET.Element, m: mujoco.MjModel, joint: int) -> None:
     """The axis, limits and dynamics of the moving joint ``element``, MuJoCo's ``joint``."""
     ET.SubElement(element, "axis", xyz=_xyz(m.jnt_axis[joint]))
     dof = int(m.jnt_dofadr[joint])
-    # MJCF gives no joint speeds: the loader's default, as for a URDF joint without one
-    limit = {"effort": repr(_torque_limit(m, joint)), "velocity": repr(DEFAULT_VELOCITY)}
+    # MJCF gives no joint speeds: 0, so that the loader derives one, as for a URDF joint
+    limit = {"effort": repr(_torque_limit(m, joint)), "velocity": "0"}
     if m.jnt_limited[joint]:
         low, high = np.asarray(m.jnt_range[joint]) - m.qpos0[m.jnt_qposadr[joint]]
         limit |= {"lower": repr(float(low)), "upper": repr(float(high))}

@@ -20,7 +20,6 @@ INERTIA_ENTRIES = {
     "izz": (2, 2),
 }
 INERTIA_KEYS = tuple(INERTIA_ENTRIES)
-DEFAULT_VELOCITY = 10.0  # rad/s, for a joint published without a speed (none is enforced)
 
 
 def add_inertial(link: ET.Element, com: np.ndarray, mass: float, inertia: np.ndarray) -> None:
@@ -57,6 +56,8 @@ class ArmSpec:
     :param held: every joint of the description that could move but is held fixed (above the
         base link, off the chain, mimic or prismatic), with the position it is held at (rad or
         m), in the description's order.
+    :param unbounded: the actuated joints without position limits (continuous joints; their
+        ``lower`` and ``upper`` are only a range for placement).
     """
 
     urdf_text: str
@@ -76,6 +77,12 @@ class ArmSpec:
     peg_axis: str = ""
     base_link: str = ""
     held: tuple[tuple[str, float], ...] = ()
+    unbounded: tuple[str, ...] = ()
+
+    @property
+    def bounded(self) -> tuple[bool, ...]:
+        """Per actuated joint, whether it has position limits."""
+        return tuple(name not in self.unbounded for name in self.joint_names)
 
     @property
     def dof(self) -> int:

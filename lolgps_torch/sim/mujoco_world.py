@@ -262,9 +262,18 @@ class MujocoWorld(World):
         mine = [world for world in worlds if isinstance(world, MujocoWorld)]
         if len(mine) != len(worlds):
             raise TypeError("MujocoWorld.step_together steps MuJoCo worlds only")
-        taus = np.stack([world._command(row) for world, row in zip(mine, u, strict=True)])
-        for s in range(taus.shape[1]):
-            _physics_steps(mine, taus[:, s])
+        commands = [world._command(row) for world, row in zip(mine, u, strict=True)]
+        moving = [i for i, world in enumerate(mine) if world.fault is None]  # not braked
+        substeps = mine[0].config.substeps
+        taus = np.array([commands[i] for i in moving]).reshape(-1, substeps, u.shape[1])
+        for s in range(substeps):
+            if not moving:
+                break
+            _physics_steps([mine[i] for i in moving], taus[:, s])
+            still = [k for k, i in enumerate(moving) if not mine[i].check_limits()]
+            moving, taus = [moving[k] for k in still], taus[still]
+        for world in mine:
+            world._steps += 1
         return np.stack([world.observe() for world in mine])
 
     def _damping_views(self) -> None:

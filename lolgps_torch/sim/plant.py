@@ -16,6 +16,9 @@ does with it, so the learner never reads them. With the defaults the plant is th
   velocities ``qd + e_qd``, ``e_qd ~ N(0, (10 s)^2)``; the point features stay exact.
 - Latency: the command issued at time t acts from ``t + d`` on, ``d`` a whole number of
   physics steps (``dt / substeps``); before the first command acts the arm gets ``u = 0``.
+- Limits: as a real arm's controller does, the world stops the arm where a joint passes its
+  velocity limit or comes near a position limit, and the rollout ends as a fault
+  (:class:`~lolgps_torch.sim.simulator.Reflex`); ``off``: the arm moves on past them.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.spec import INERTIA_KEYS
 
 GravityCompensation = Literal["plant", "model", "none"]
+Limits = Literal["reflex", "off"]
 
 VELOCITY_NOISE_RATIO = 10.0  # velocity noise per unit of joint-angle noise (rad/s per rad)
 
@@ -52,6 +56,9 @@ class PlantConfig:
     :param action_delay: seconds between a command and the moment it acts on the arm, any
         duration: over a physics step that a delay of k + f physics steps splits, the arm
         feels the command f of the step longer (:meth:`delay_steps`).
+    :param limits: reflex: a joint past its velocity limit or near a position limit stops
+        the arm and ends the rollout as a fault, as a real arm's controller does; off: no limit
+        is watched.
     """
 
     inertia_scale: float = 0.0
@@ -61,8 +68,11 @@ class PlantConfig:
     joint_friction: float = 0.0
     obs_noise: float = 0.0
     action_delay: float = 0.0
+    limits: Limits = "reflex"
 
     def __post_init__(self) -> None:
+        if self.limits not in ("reflex", "off"):
+            raise LolgpsError(f"--limits must be reflex or off, got {self.limits!r}")
         if not (math.isfinite(self.inertia_scale) and 0.0 <= self.inertia_scale < 1.0):
             raise LolgpsError(f"--plant-inertia-scale must be in [0, 1), got {self.inertia_scale}")
         if self.seed < 0:

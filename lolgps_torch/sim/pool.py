@@ -35,12 +35,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.plant import PlantConfig
-from lolgps_torch.sim.rollout import Actor, Sampler, rollout_rows
+from lolgps_torch.sim.rollout import Actor, Rollouts, Sampler, rollout_rows
 from lolgps_torch.sim.simulator import Simulator, WorldConfig
 
 Position = tuple[float, float]
@@ -160,9 +159,7 @@ class RolloutPool:
                 proc.start()
                 self._procs.append((proc, jobs, results))
 
-    def rollout(
-        self, act: Actor, offsets: Sequence[Position], batch: int = 0
-    ) -> tuple[Tensor, Tensor, Tensor]:
+    def rollout(self, act: Actor, offsets: Sequence[Position], batch: int = 0) -> Rollouts:
         """The batch's rollouts, row i at ``offsets[i]`` acted on by ``act``'s row i, as
         :func:`rollout_rows` returns them (CPU tensors)."""
         n = len(offsets)
@@ -178,8 +175,7 @@ class RolloutPool:
         failures = [p for p in parts if isinstance(p, BaseException)]
         if failures:
             raise failures[0]
-        x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
-        return x, u, final
+        return Rollouts(*(torch.cat(field) for field in zip(*parts, strict=True)))
 
     def submit(self, errand: Errand) -> int:
         """Send ``errand`` to the last worker (whose block of a batch is the smallest), which

@@ -29,6 +29,18 @@ from lolgps_torch.sim.simulator import Simulator, World, WorldConfig
 from lolgps_torch.types import LinearGaussian
 
 
+class Rollouts(NamedTuple):
+    """A batch's rollouts: states x ``[N, T+1, dX]`` (``x_T`` the state after the last action),
+    actions u ``[N, T, dU]``, the final tip distance ``[N]`` (m) and whether the arm's
+    controller stopped the rollout (``fault [N]`` bool: a limit passed, :attr:`World.fault
+    <lolgps_torch.sim.simulator.World.fault>`)."""
+
+    x: Tensor
+    u: Tensor
+    final: Tensor
+    fault: Tensor
+
+
 class Actor(Protocol):
     """``act(t, x, rows) -> u``: states ``x: [n, dX]`` of the batch's rollouts ``rows`` at step
     ``t`` -> torques ``[n, dU]``."""
@@ -137,23 +149,25 @@ class Sampler:
         act: Actor,
         offsets: Sequence[tuple[float, float]],
         keys: Sequence[tuple[int, ...]] | None = None,
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Run one episode of T actions per hole offset; returns the states x ``[N, T+1, dX]``
-        (``x_T`` the state after the last action), u ``[N, T, dU]`` and the final tip distance
-        ``[N]`` (float64 tensors on the sampler's device). Rollout i's sensor noise is drawn
-        from ``keys[i]`` (default ``(i,)``)."""
+    ) -> Rollouts:
+        """Run one episode of T actions per hole offset (:class:`Rollouts`, float64 tensors on
+        the sampler's device, the faults bool). Rollout i's sensor noise is drawn from
+        ``keys[i]`` (default ``(i,)``)."""
         keys = [(i,) for i in range(len(offsets))] if keys is None else keys
         parts = []
         for start in range(0, len(offsets), len(self.worlds)):
             chunk = list(offsets[start : start + len(self.worlds)])
             rows = slice(start, start + len(chunk))
             parts.append(self.episode(act, chunk, keys[rows], rows))
-        x, u, final = (np.concatenate(field) for field in zip(*parts, strict=True))
-        return (
-            torch.as_tensor(x, dtype=torch.float64, device=self.device),
-            torch.as_tensor(u, dtype=torch.float64, device=self.device),
-            torch.as_tensor(final, dtype=torch.float64, device=self.device),
+        return self._tensors(parts)
+
+    def _tensors(self, parts: Sequence[tuple[np.ndarray, ...]]) -> Rollouts:
+        """Episodes' arrays (:meth:`episode`) joined as :class:`Rollouts` on the device."""
+        x, u, final, fault = (np.concatenate(field) for field in zip(*parts, strict=True))
+        x_t, u_t, final_t = (
+            torch.as_tensor(a, dtype=torch.float64, device=self.device) for a in (x, u, final)
         )
+        return Rollouts(x_t, u_t, final_t, torch.as_tensor(fault, device=self.device))
 
     def episode(
         self,
@@ -161,9 +175,10 @@ class Sampler:
         offsets: Sequence[tuple[float, float]],
         keys: Sequence[tuple[int, ...]],
         rows: slice,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """One episode of the first ``len(offsets)`` worlds in lockstep, acted on by ``act``'s
-        batch rows ``rows``: x ``[n, T+1, dX]``, u ``[n, T, dU]``, final distances ``[n]``."""
+        batch rows ``rows``: x ``[n, T+1, dX]``, u ``[n, T, dU]``, final distances ``[n]`` and
+        faults ``[n]`` (:class:`Rollouts`)."""
         T = self.config.T
         worlds = self.worlds[: len(offsets)]
         step = type(worlds[0]).step_together
@@ -179,7 +194,8 @@ class Sampler:
             us[:, t] = u_np
             x_np = step(worlds, u_np)
         xs[:, T] = x_np
-        return xs, us, np.array([w.tip_distance() for w in worlds])
+        final = np.array([w.tip_distance() for w in worlds])
+        return xs, us, final, np.array([w.fault is not None for w in worlds])
 
     def close(self) -> None:
         for w in self.worlds:
@@ -192,7 +208,7 @@ def rollout_rows(
     offsets: Sequence[tuple[float, float]],
     rows: Sequence[int],
     batch: int = 0,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> Rollouts:
     """The rollouts of the batch's ``rows`` (row i at ``offsets[i]``), stacked as
     :meth:`Sampler.rollout` returns them; row i's sensor noise is keyed ``(batch, i)``.  Each
     run of consecutive rows is stepped together where the engine and the actor allow it (module
@@ -203,8 +219,7 @@ def rollout_rows(
         parts = [
             sampler.rollout(RowActor(act, row), [offsets[row]], [(batch, row)]) for row in rows
         ]
-        x, u, final = (torch.cat(field) for field in zip(*parts, strict=True))
-        return x, u, final
+        return Rollouts(*(torch.cat(field) for field in zip(*parts, strict=True)))
     rowwise = act.rowwise()
     runs: list[list[int]] = []
     for row in rows:
@@ -213,17 +228,14 @@ def rollout_rows(
         else:
             runs.append([row])
     sampler.grow(max(len(run) for run in runs))
-    parts_np = [
-        sampler.episode(
-            rowwise,
-            [offsets[r] for r in run],
-            [(batch, r) for r in run],
-            slice(run[0], run[-1] + 1),
-        )
-        for run in runs
-    ]
-    x, u, final = (
-        torch.as_tensor(np.concatenate(field), dtype=torch.float64, device=sampler.device)
-        for field in zip(*parts_np, strict=True)
+    return sampler._tensors(
+        [
+            sampler.episode(
+                rowwise,
+                [offsets[r] for r in run],
+                [(batch, r) for r in run],
+                slice(run[0], run[-1] + 1),
+            )
+            for run in runs
+        ]
     )
-    return x, u, final

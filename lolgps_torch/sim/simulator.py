@@ -27,7 +27,7 @@ import math
 import re
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple, Protocol
 
 import numpy as np
@@ -185,6 +185,48 @@ def damping_inertias(
     return m_eff, need
 
 
+POSITION_MARGIN = 0.02  # rad: a joint this near a position limit trips the reflex
+
+
+class Reflex(NamedTuple):
+    """The limits a real arm's controller watches (``[dof]`` each): a joint faster than its
+    velocity limit ``|q-dot_j| > v_j``, or nearer than :data:`POSITION_MARGIN` to a position
+    limit of a bounded joint, ``q_j < lower_j + margin`` or ``q_j > upper_j - margin``, stops
+    the arm (docs/RELIABILITY.md, "The arm's limits")."""
+
+    velocity: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+    @classmethod
+    def of(cls, arm: ArmSpec) -> Reflex:
+        """The reflex of ``arm``'s URDF limits (a continuous joint has no position limit)."""
+        bounded = np.asarray(arm.bounded, dtype=bool)
+        lower = np.where(bounded, np.asarray(arm.lower) + POSITION_MARGIN, -np.inf)
+        upper = np.where(bounded, np.asarray(arm.upper) - POSITION_MARGIN, np.inf)
+        return cls(np.asarray(arm.velocity, dtype=np.float64), lower, upper)
+
+    def violation(self, q: np.ndarray, qd: np.ndarray, step: int) -> str | None:
+        """The first limit the joint state ``(q, qd)`` passes, as one line naming the joint
+        (from 1) and the control ``step``; None within every limit."""
+        over = np.abs(qd) / self.velocity
+        j = int(np.argmax(over))
+        if over[j] > 1.0:
+            return (
+                f"joint {j + 1} at {abs(qd[j]):.3g} rad/s over its velocity limit "
+                f"{self.velocity[j]:.3g} at step {step}"
+            )
+        outside = (q < self.lower) | (q > self.upper)
+        if outside.any():
+            j = int(np.argmax(outside))
+            return (
+                f"joint {j + 1} at {q[j]:.3g} rad, within {POSITION_MARGIN} rad of its position "
+                f"limits [{self.lower[j] - POSITION_MARGIN:.3g}, "
+                f"{self.upper[j] + POSITION_MARGIN:.3g}] at step {step}"
+            )
+        return None
+
+
 class World(ABC):
     """One world with the arm, the table and the hole, stepped by an engine (module
     docstring).  Not picklable: build it in the process that uses it.
@@ -231,6 +273,11 @@ class World(ABC):
         self._noise: np.random.Generator | None = None
         self._observed_q = np.zeros(arm.dof)  # the joint angles the last observation gave
         self._model: ArmDynamics | None = None  # the learner's, built when first needed
+        self.reflex = Reflex.of(arm) if plant.limits == "reflex" else None
+        #: why the arm's controller stopped the rollout (one line), None while the arm runs;
+        #: once set, :meth:`step` leaves the arm braked where it stopped until :meth:`reset`
+        self.fault: str | None = None
+        self._steps = 0  # control steps since the last reset
 
     # the engine's primitives
 
@@ -290,6 +337,7 @@ class World(ABC):
         """Put the arm at rest at ``q0``, with no command pending, and return the state; the
         rollout's sensor noise is drawn from ``key`` (:meth:`PlantConfig.noise`)."""
         self._set_joints(np.asarray(q0, dtype=np.float64))
+        self.fault, self._steps = None, 0
         self._queue = np.zeros_like(self._queue)
         self._issued = np.zeros_like(self._issued)
         self._noise = self.plant.noise(key)
@@ -319,15 +367,36 @@ class World(ABC):
         from the state the last :meth:`reset`, :meth:`observe` or :meth:`step` returned; with a
         delay of d physics steps, the commands issued d steps earlier act instead (over a
         step that a fractional delay splits, the mean of the two, :meth:`PlantConfig.delay_steps
-        <lolgps_torch.sim.plant.PlantConfig.delay_steps>`)."""
+        <lolgps_torch.sim.plant.PlantConfig.delay_steps>`). Where the arm passes a limit
+        (:class:`Reflex`) it is braked, and stays so (:attr:`fault`)."""
         for tau in self._command(u):
             self._physics_step(tau)
+            if self.check_limits():
+                break
+        self._steps += 1
         return self.observe()
+
+    def check_limits(self) -> bool:
+        """Whether the arm's controller has stopped the arm: at the joint state now, a joint
+        past its velocity limit or within :data:`POSITION_MARGIN` of a position limit
+        (:class:`Reflex`) brakes it to rest where it is and sets :attr:`fault`; with the
+        limits off, never."""
+        if self.reflex is None or self.fault is not None:
+            return self.fault is not None
+        q, qd = self._joint_state()
+        self.fault = self.reflex.violation(q, qd, self._steps)
+        if self.fault is not None:
+            self._set_joints(q)
+        return self.fault is not None
 
     def _command(self, u: np.ndarray) -> np.ndarray:
         """The book-keeping of a control step issuing ``u`` (:meth:`step`), and the joint
-        torques of its physics steps, ``[substeps, dof]``."""
+        torques of its physics steps, ``[substeps, dof]`` (none, ``[0, dof]``, once the arm is
+        braked: it does not move)."""
         substeps = self.config.substeps
+        if self.fault is not None:
+            self._prev_points = self._points
+            return np.empty((0, len(u)))
         if not np.isfinite(u).all():
             raise NumericalError("non-finite action: the controller produced NaN or inf torques")
         g = self.gravity_compensation()
@@ -432,7 +501,7 @@ def require(simulator: Simulator) -> None:
 def check_plant(simulator: Simulator, plant: PlantConfig) -> None:
     """Raise :class:`LolgpsError` if ``simulator`` cannot simulate ``plant``: MuJoCo's world
     simulates the arm as its URDF describes it, the plant variations are PyBullet's."""
-    if simulator == "mujoco" and plant != NOMINAL_PLANT:
+    if simulator == "mujoco" and replace(plant, limits=NOMINAL_PLANT.limits) != NOMINAL_PLANT:
         raise LolgpsError(
             "--sim mujoco simulates the arm as its URDF describes it: the plant flags "
             "(--plant-inertia-scale, --payload, --gravity-compensation, --joint-friction, "

@@ -110,7 +110,8 @@ def reguarded(
             guard_speed=args.speed or trained["guard_speed"], guard_window=window,
             guard_retreat=args.retreat, guard_torque=args.torque,
         )  # fmt: skip
-        fitted = guard_of(data, StateLayout(guard.torque.shape[0]), config, depth)
+        unlimited = torch.full_like(guard.torque, math.inf)  # D_g's trip speeds alone
+        fitted = guard_of(data, StateLayout(guard.torque.shape[0]), config, depth, unlimited)
         if fitted is None:
             raise LolgpsError("--window, --retreat: a checkpoint's conditions hold no rollout")
     if args.window is not None and fitted is not None:
