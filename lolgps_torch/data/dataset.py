@@ -10,6 +10,8 @@ for runs made since it kept one, ``arm.urdf``. The exports (:mod:`~lolgps_torch.
 from __future__ import annotations
 
 import hashlib
+import os
+import shutil
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -23,7 +25,7 @@ import lolgps_torch
 from lolgps_torch.data.replay import FORMAT as REPLAY_FORMAT
 from lolgps_torch.data.replay import VERSION as REPLAY_VERSION
 from lolgps_torch.data.replay import ConditionRecord, ReplayBuffer
-from lolgps_torch.data.run_folder import RunFolder, read_json
+from lolgps_torch.data.run_folder import RunFolder, fsync_path, read_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.progress import progress
 from lolgps_torch.robot.kinematics import PegKinematics
@@ -280,3 +282,35 @@ def _visited(records: list[ConditionRecord]) -> dict[str, np.ndarray]:
     }
     del fields["x"]
     return {name: tensor.cpu().numpy() for name, tensor in fields.items()}
+
+
+def tip_distances(run: RunData) -> np.ndarray:
+    """The tip's distance to its target (m) at each of the T+1 states of every trajectory,
+    ``[N, T+1]``: the norm of the state's tip block ``p_tip - p*_tip``."""
+    tip = slice(*run.meta["state"]["points"])
+    return np.linalg.norm(run.trajectories.states.numpy()[:, :, tip][:, :, :3], axis=-1)
+
+
+def tree_size(path: Path) -> int:
+    """The bytes of the files under the folder ``path``."""
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def fsync_tree(path: Path) -> None:
+    """Flush the folder ``path`` and everything under it to disk."""
+    for p in sorted(path.rglob("*"), reverse=True):
+        fsync_path(p)
+    fsync_path(path)
+
+
+def move_into_place(staged: Path, out: Path) -> None:
+    """Replace the folder ``out`` (if any) by the folder ``staged``."""
+    retired = out.with_name(f".{out.name}.old")
+    try:
+        if out.exists():
+            shutil.rmtree(retired, ignore_errors=True)
+            os.replace(out, retired)
+        os.replace(staged, out)
+        fsync_path(out.parent)
+    finally:
+        shutil.rmtree(retired, ignore_errors=True)

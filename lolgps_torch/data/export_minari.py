@@ -27,10 +27,13 @@ from lolgps_torch.data.dataset import (
     ExportReport,
     RunData,
     check_output,
+    fsync_tree,
+    move_into_place,
     one_line,
     read_run,
+    tip_distances,
+    tree_size,
 )
-from lolgps_torch.data.run_folder import fsync_path
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.gym_env import ENV_ID
 from lolgps_torch.progress import progress
@@ -79,9 +82,7 @@ def _episodes(run: RunData) -> Iterator[Any]:
     tr = run.trajectories
     N, T = tr.cost.shape
     states, actions, rewards = tr.states.numpy(), tr.actions.numpy(), (-tr.cost).numpy()
-    # The state's tip block is p_tip - p*_tip: its norm is the env's info "tip_distance".
-    tip = slice(*run.meta["state"]["points"])
-    tip_distance = np.linalg.norm(states[:, :, tip][:, :, :3], axis=-1)  # [N, T+1]
+    tip_distance = tip_distances(run)  # the env's info "tip_distance"
     success = tip_distance < run.meta["task"]["success_threshold"]
     truncations = np.arange(T) == T - 1
     for i in progress(range(N), N, "episodes"):
@@ -137,29 +138,6 @@ def _write_minari(name: str, run: RunData) -> None:
     )
 
 
-def _tree_size(path: Path) -> int:
-    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-
-
-def _fsync_tree(path: Path) -> None:
-    for p in sorted(path.rglob("*"), reverse=True):
-        fsync_path(p)
-    fsync_path(path)
-
-
-def _move_into_place(staged: Path, out: Path) -> None:
-    """Replace ``out`` (if any) by the staged dataset folder."""
-    retired = out.with_name(f".{out.name}.old")
-    try:
-        if out.exists():
-            shutil.rmtree(retired, ignore_errors=True)
-            os.replace(out, retired)
-        os.replace(staged, out)
-        fsync_path(out.parent)
-    finally:
-        shutil.rmtree(retired, ignore_errors=True)
-
-
 def export_minari(run_dir: str | Path, out_dir: str | Path, force: bool = False) -> ExportReport:
     """Write the run's trajectories as a Minari dataset (HDF5 storage) in folder ``out_dir``.
 
@@ -196,10 +174,10 @@ def export_minari(run_dir: str | Path, out_dir: str | Path, force: bool = False)
         staging.mkdir()
         with _minari_root(staging):
             _write_minari(out.name, run)
-        _fsync_tree(staging / out.name)
-        _move_into_place(staging / out.name, out)
+        fsync_tree(staging / out.name)
+        move_into_place(staging / out.name, out)
     except (OSError, ValueError) as error:
         raise LolgpsError(f"cannot write Minari dataset {out}: {one_line(error)}") from error
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return ExportReport(out, N, N * T, _tree_size(out), time.perf_counter() - start)
+    return ExportReport(out, N, N * T, tree_size(out), time.perf_counter() - start)
