@@ -144,11 +144,13 @@ def test_jacobian_matches_finite_differences(task: PegTask) -> None:
 def _random_trajectories(
     task: PegTask, N: int, T: int, seed: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """States near q0 (other dimensions zero), random actions, and one condition's targets."""
+    """States near q0 with random joint speeds (other dimensions zero), random actions, and
+    one condition's targets."""
     gen = torch.Generator().manual_seed(seed)
     x = torch.zeros(N, T, task.layout.dX, dtype=torch.float64)
     x[..., task.layout.q] = task.q0 + 0.2 * torch.randn(N, T, 7, dtype=torch.float64, generator=gen)
     u = torch.randn(N, T, task.layout.dU, dtype=torch.float64, generator=gen)
+    x[..., task.layout.qd] = torch.randn(N, T, 7, dtype=torch.float64, generator=gen)
     return x, u, task.targets([(0.01, -0.02)])[0]
 
 
@@ -179,6 +181,11 @@ def test_cost_gradient_and_gauss_newton_hessian(task: PegTask) -> None:
     H = torch.autograd.functional.hessian(linearised, torch.zeros(7, dtype=torch.float64))
     assert torch.allclose(e.lxx[0, 0][task.layout.q, task.layout.q], H, atol=1e-6)
     assert torch.allclose(e.luu[0, 0], torch.diag(task.cost.wu))
+    qd = task.layout.qd  # the speed term, in units of the velocity limits
+    velocity = torch.tensor(task.arm.velocity, dtype=torch.float64)
+    wv = task.cost.config.speed_weight / velocity**2
+    assert task.cost.config.speed_weight > 0
+    assert torch.allclose(e.lxx[0, 0][qd, qd], torch.diag(wv))
 
     quad = to_quadratic(e, x, u)  # exact at every sample when N = 1
     e1 = task.cost.expand(x[:1], u[:1], targets)

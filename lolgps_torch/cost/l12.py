@@ -63,7 +63,7 @@ class CostConfig:
     action_weight: float = 1.0
     descent_height: float = 0.2
     descent_steps: int = 40
-    speed_weight: float = 1.0
+    speed_weight: float = 3.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed_weight) and self.speed_weight >= 0.0):

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import Any
 
 
 def format_table(evaluation: dict[str, Any]) -> str:
-    """A plain-text table: per stage and group, distance, cost and success with 95% CIs."""
+    """A plain-text table: per stage and group, distance, cost and success with 95% CIs, the
+    largest joint speed over its velocity limit and the faults (NaN and - for an evaluation
+    that did not record them)."""
 
     def interval(stat: dict[str, float | None], fmt: str) -> str:
         if stat["low"] is None or stat["high"] is None:
@@ -16,7 +19,7 @@ def format_table(evaluation: dict[str, Any]) -> str:
 
     lines = [
         f"{'stage':<8} {'group':<18} {'centre (m)':>10}  {'final distance (m)':<26} "
-        f"{'total cost':<28} success"
+        f"{'total cost':<28} {'success':<18} peak speed / limit  faults"
     ]
     for stage in evaluation["stages"]:
         for group, stats in zip(evaluation["groups"], stage["groups"], strict=True):
@@ -24,7 +27,8 @@ def format_table(evaluation: dict[str, Any]) -> str:
                 f"{stage['name']:<8} {group['label']:<18} {group['centre_distance']:>10.3f}  "
                 f"{interval(stats['final_distance'], '.4f'):<26} "
                 f"{interval(stats['total_cost'], '.1f'):<28} "
-                f"{interval(stats['success_rate'], '.2f')}"
+                f"{interval(stats['success_rate'], '.2f'):<18} "
+                f"{stats.get('peak_speed', math.nan):>18.2f}  {stats.get('faults', '-')}"
             )
     metrics = evaluation["metrics"]
     lines.append(f"average final success: {metrics['average_final_success']:.3f}")

@@ -10,8 +10,10 @@ training positions the final policy reaches, each test area's success after ``--
 worst of areas 0-4, the average final success over all areas, the forgetting, the rollouts of
 local learning, the S-step rounds after the first fit, the largest final distance at any test
 position after the last stage and after any stage (the policies of train0 and train1 are
-tested at every area too), and the largest joint speed after the last stage over the joint's
-velocity limit (evaluations made before the speed was recorded show '-'). Then per arm and label: the
+tested at every area too), the largest joint speed over the joint's velocity limit after the
+last stage and at any stage (evaluations made before the speed was recorded show '-'), the
+test rollouts the arm's controller stopped at a limit over every stage, and the rollouts of
+local learning it stopped (faults; runs made before faults were counted show 0). Then per arm and label: the
 mean and the worst over seeds, and how many seeds have every area 0-4 at 90 % or more.
 ``--plot`` draws each seed's average final success and worst area 0-4, per arm and label.
 """
@@ -46,6 +48,9 @@ class SeedRow(NamedTuple):
     worst_distance: float
     any_stage_distance: float
     peak_speed: float
+    any_stage_speed: float
+    eval_faults: int
+    stream_faults: int
 
 
 def parse_args() -> argparse.Namespace:
@@ -92,6 +97,16 @@ def seed_row(folder: Path, stage: str) -> SeedRow:
             for s in evaluation["stages"]
         ),
         peak_speed=max(max(area) for area in speeds) if speeds else math.nan,
+        any_stage_speed=max(
+            (
+                max(max(a) for a in st["per_position"]["peak_speed"])
+                for st in evaluation["stages"]
+                if "peak_speed" in st["per_position"]
+            ),
+            default=math.nan,
+        ),  # fmt: skip
+        eval_faults=sum(int(st.get("faults", 0)) for st in evaluation["stages"]),
+        stream_faults=sum(int(c.get("faults", 0)) for c in summary),
     )
 
 
@@ -99,22 +114,26 @@ def print_tables(groups: dict[tuple[str, str], list[SeedRow]]) -> None:
     """The per-seed rows, then the aggregate per arm and label."""
     print("| arm | label | seed | positions | areas 0-6 after the stage (%) | worst area 0-4 (%) | "
           "average final success | forgetting (m) | rollouts | S-step rounds | worst final "
-          "distance (m) | at any stage (m) | peak speed / limit |")  # fmt: skip
-    print("|---" * 13 + "|")
+          "distance (m) | at any stage (m) | peak speed / limit | at any stage | faults in "
+          "evaluation | faults in learning |")  # fmt: skip
+    print("|---" * 16 + "|")
     for (arm, label), rows in groups.items():
         for r in rows:
-            speed = "-" if math.isnan(r.peak_speed) else f"{r.peak_speed:.1f}"
+            speed, anywhere = ("-" if math.isnan(v) else f"{v:.2f}"
+                               for v in (r.peak_speed, r.any_stage_speed))  # fmt: skip
             print(
                 f"| {arm} | {label} | {r.seed} | {r.positions} | "
                 + " / ".join(f"{a:.0f}" for a in r.areas)
                 + f" | {r.worst_area:.0f} | {r.average:.2f} | {r.forgetting:+.4f} | {r.rollouts} | "
-                f"{r.rounds} | {r.worst_distance:.3f} | {r.any_stage_distance:.3f} | {speed} |"
+                f"{r.rounds} | {r.worst_distance:.3f} | {r.any_stage_distance:.3f} | {speed} | "
+                f"{anywhere} | {r.eval_faults} | {r.stream_faults} |"
             )
     print()
     print("| arm | label | seeds | all positions | areas 0-4 all >= 90 % | average final success: "
           "mean (worst) | worst area 0-4: mean (worst) | rollouts (mean) | S-step rounds (mean) | "
-          "worst final distance (m) | at any stage (m) |")  # fmt: skip
-    print("|---" * 11 + "|")
+          "worst final distance (m) | at any stage (m) | peak speed / limit | faults in "
+          "evaluation (all) | faults in learning (mean) |")  # fmt: skip
+    print("|---" * 14 + "|")
     for (arm, label), rows in groups.items():
         full = sum(r.positions.split("/")[0] == r.positions.split("/")[1] for r in rows)
         good = sum(r.worst_area >= 90.0 for r in rows)
@@ -126,7 +145,9 @@ def print_tables(groups: dict[tuple[str, str], list[SeedRow]]) -> None:
             f"{statistics.mean(r.rollouts for r in rows):.0f} | "
             f"{statistics.mean(r.rounds for r in rows):.1f} | "
             f"{max(r.worst_distance for r in rows):.3f} | "
-            f"{max(r.any_stage_distance for r in rows):.3f} |"
+            f"{max(r.any_stage_distance for r in rows):.3f} | "
+            f"{max(r.any_stage_speed for r in rows):.2f} | {sum(r.eval_faults for r in rows)} | "
+            f"{statistics.mean(r.stream_faults for r in rows):.1f} |"
         )
 
 
