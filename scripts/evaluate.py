@@ -15,7 +15,8 @@ local instance, or the cluster at ADDRESS) instead of processes, with the same r
 The rollouts run on the run's own plant (config.json's ``task.plant``); the plant flags
 (``--payload``, ``--action-delay``, ...) change it, each one left out keeping the run's.
 They run in the run's own simulator (``task.sim``) unless ``--sim`` names another: a policy
-learnt in one simulator tested in the other.
+learnt in one simulator tested in the other. With ``--arm franka --robot-ip IP`` they run on
+the arm, one at a time (docs/REAL_ARM.md).
 """
 
 from __future__ import annotations
@@ -24,7 +25,14 @@ import argparse
 from dataclasses import replace
 from typing import get_args
 
-from lolgps_torch.cli import add_plant_arguments, plant_config, read_offsets, run
+from lolgps_torch.cli import (
+    add_arm_arguments,
+    add_plant_arguments,
+    arm_config,
+    plant_config,
+    read_offsets,
+    run,
+)
 from lolgps_torch.cluster import import_ray
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
@@ -95,6 +103,7 @@ def make_parser(defaults: AreaConfig) -> argparse.ArgumentParser:
         help="the simulator the rollouts run in (default: the run's)",
     )
     add_plant_arguments(parser)
+    add_arm_arguments(parser)
     return parser
 
 
@@ -103,6 +112,9 @@ def main() -> None:
     args = make_parser(defaults).parse_args()
     if args.workers < 1:
         raise LolgpsError(f"--workers {args.workers}: must be at least 1")
+    real = arm_config(args)
+    if args.ray is not None and real.arm != "simulated":
+        raise LolgpsError(f"--ray runs rollouts on Ray actors, --arm {real.arm} on the arm")
     if args.ray is not None:
         import_ray()
     areas, positions, square = test_set(args, defaults)
@@ -118,6 +130,7 @@ def main() -> None:
         ray=args.ray,
         plant=plant,
         sim=args.sim,
+        real=real,
     )
     folder = RunFolder(args.run)
     plot_fig4(evaluation, folder.figure_path)

@@ -14,7 +14,8 @@ or miss at its final distance); clips go side by side in a grid or one after ano
 FILE (default DIR/videos/WHO-VIEW.mp4; an .mp4 needs the ``video`` extra, a .gif only
 Pillow) and prints each clip's final distance. The rollouts run on the run's own plant; the
 plant flags (``--payload``, ``--action-delay``, ...) change it, each one left out keeping the
-run's.
+run's. With ``--arm franka --robot-ip IP`` the rollouts run on the arm and the video replays
+their joint angles (docs/REAL_ARM.md).
 """
 
 from __future__ import annotations
@@ -24,7 +25,14 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from lolgps_torch.cli import ConfigFlags, add_plant_arguments, plant_config, run
+from lolgps_torch.cli import (
+    ConfigFlags,
+    add_arm_arguments,
+    add_plant_arguments,
+    arm_config,
+    plant_config,
+    run,
+)
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.render import (
     RenderConfig,
@@ -55,7 +63,9 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="the video (default DIR/videos/WHO-VIEW.mp4)")
     FLAGS.add_to(parser)
     add_plant_arguments(parser)
+    add_arm_arguments(parser)
     args = parser.parse_args()
+    real = arm_config(args)
     config: RenderConfig = FLAGS.build(args)
     out = check_output(args.out or Path(args.run) / "videos" / f"{config.who}-{config.view}.mp4")
     loaded = load_run(args.run)
@@ -66,7 +76,7 @@ def main() -> None:
     if args.after is not None and args.after not in completed:
         raise LolgpsError(f"--after {args.after}: not a completed condition ({completed})")
     start = time.perf_counter()
-    clips = render_run(loaded, conditions, config, out, args.after)
+    clips = render_run(loaded, conditions, config, out, args.after, real)
     seconds = time.perf_counter() - start
     threshold = loaded.info.task.world.success_threshold
     print(f"{'who':<10} {'condition':>9} {'offset (mm)':>16} {'final (mm)':>10}  outcome")

@@ -1,6 +1,7 @@
 """A stand-in Franka for tests/test_franka.py: franky-sim's MuJoCo FR3 serving the libfranka
 protocol on 127.0.0.1, in the network namespace this runs in (``unshare -n``), while a
-command runs; the server is stopped when the command ends, however it ends.
+command runs (told the server's process id in ``FRANKA_STAND_IN_PID``); the server is
+stopped when the command ends, however it ends.
 
     unshare -n -- python tests/franka_stand_in.py [--reflexes] -- COMMAND ...
 
@@ -13,6 +14,7 @@ motion with ``joint_velocity_violation``, and no command for :data:`QUIET_TICKS`
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 from typing import Any
@@ -134,7 +136,8 @@ def main() -> int:
             print("the stand-in server did not start", file=sys.stderr)
             return 3
         command = args.command[1:] if args.command[:1] == ["--"] else args.command
-        return subprocess.run(command).returncode
+        environment = {**os.environ, "FRANKA_STAND_IN_PID": str(server.pid)}
+        return subprocess.run(command, env=environment).returncode
     finally:
         server.terminate()
         try:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -70,12 +71,14 @@ import numpy as np
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.placement import place_task
 from lolgps_torch.sim.franka import ArmSampler, RealArmConfig
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.task import TaskConfig, load_task_arm
 config = TaskConfig(urdf={mjcf!r}, mjcf=True, sim="mujoco", ee_link="hand")
 arm = load_task_arm(config)
 geometry = place_task(arm, PegKinematics(arm), config.placement, config.world.depth)
 real = RealArmConfig(arm="franka", robot_ip="127.0.0.1", yes=True, deadline={deadline})
-sampler = ArmSampler(real, arm, config.world, geometry.nominal_mouth, geometry.q0)
+plant = PlantConfig(limits={limits!r})
+sampler = ArmSampler(real, arm, config.world, geometry.nominal_mouth, geometry.q0, "cpu", plant)
 world = sampler.worlds[0]
 world.set_hole((0.0, 0.0))
 q0 = np.asarray(geometry.q0)
@@ -96,11 +99,13 @@ class Act:
 
 
 def run_script(
-    mjcf: Path, body: str, reflexes: bool = False, deadline: float = 0.2
+    mjcf: Path, body: str, reflexes: bool = False, deadline: float = 0.2, limits: str = "reflex"
 ) -> dict[str, object]:
-    """The prelude (the FR3's sampler on the stand-in, the learner's deadline ``deadline``)
-    and ``body``, which prints one JSON line; that line read back."""
-    script = PRELUDE.format(mjcf=str(mjcf), deadline=deadline) + ACT + textwrap.dedent(body)
+    """The prelude (the FR3's sampler on the stand-in, the learner's deadline ``deadline``,
+    its own reflex ``limits``) and ``body``, which prints one JSON line; that line read
+    back."""
+    script = PRELUDE.format(mjcf=str(mjcf), deadline=deadline, limits=limits)
+    script += ACT + textwrap.dedent(body)
     output = in_namespace(sys.executable, "-c", script, reflexes=reflexes)
     (line,) = [line for line in output.splitlines() if line.startswith("{")]
     result: dict[str, object] = json.loads(line)
@@ -154,6 +159,7 @@ def test_speed_reflex_reported_and_recovered(fr3: Path) -> None:
                           "back": float(np.abs(calm.x[0, 0, :7].numpy() - q0).max())}))
         """,
         reflexes=True,
+        limits="off",  # the arm's reflex, not the learner's (its speed limits are lower)
     )
     assert result["fast"] and not result["calm"]
     assert "joint_velocity_violation" in str(result["reason"])
@@ -205,3 +211,70 @@ def test_learns_one_condition(fr3: Path, tmp_path: Path) -> None:
     assert entry["local_final_distance"] < 0.06, output
     assert "the arm stopped" not in output
     assert "rollout 1 on the arm" in output
+
+
+def missed_share(output: str) -> float:
+    """The share of the arm's ticks missed over the rollouts ``output`` reports."""
+    counts = re.findall(r"(\d+) of (\d+) ticks missed", output)
+    assert counts, output
+    return sum(int(m) for m, _ in counts) / sum(int(n) for _, n in counts)
+
+
+@pytest.mark.slow
+def test_learns_two_conditions(fr3: Path, tmp_path: Path) -> None:
+    """A two-condition stream in free space: both learnt (the local controller's and the
+    global policy's tips within the success threshold of the floor point), no fault, under
+    1 % of the arm's ticks missed, the summary written."""
+    out = tmp_path / "run"
+    command = run_stream(fr3, out, [[0.01, -0.02], [-0.03, 0.04]], "--samples", "3",
+                         "--max-iterations", "6", "--success-phases", "3", "--seed", "3")  # fmt: skip
+    output = in_namespace(*command, timeout=3600)
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["conditions"]) == 2
+    for entry in summary["conditions"]:
+        assert entry["local_final_distance"] < 0.06, output
+        assert entry["policy_final_distance_end"] < 0.06, output
+    assert "the arm stopped" not in output
+    assert missed_share(output) < 0.01
+
+
+# run_stream.py killed in a rollout of the second condition (6 s after the first report of
+# one: the move back takes about 4 s), then resumed
+KILL_AND_RESUME = """
+import json, signal, subprocess, sys, time
+command = json.loads(sys.argv[1])
+learner = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+before, done = [], False
+for line in learner.stdout:
+    before.append(line)
+    done = done or line.startswith("condition 1/2 done")
+    if done and line.startswith("rollout"):
+        time.sleep(6.0)
+        break
+learner.send_signal(signal.SIGKILL)
+learner.wait()
+resumed = subprocess.run([*command, "--resume"], capture_output=True, text=True)
+print(json.dumps({"before": "".join(before), "after": resumed.stdout + resumed.stderr,
+                  "code": resumed.returncode}))
+"""
+
+
+@pytest.mark.slow
+def test_killed_mid_rollout_then_resumed(fr3: Path, tmp_path: Path) -> None:
+    """The learner killed in the middle of the second condition's rollouts; --resume keeps
+    the first condition as it was learnt and redoes the second: the summary holds both."""
+    out = tmp_path / "run"
+    command = run_stream(fr3, out, [[0.0, 0.0], [0.02, 0.02]], "--samples", "2",
+                         "--max-iterations", "2", "--success-phases", "1", "--repairs", "0")  # fmt: skip
+    output = in_namespace(sys.executable, "-c", KILL_AND_RESUME, json.dumps(command), timeout=3600)
+    (line,) = [line for line in output.splitlines() if line.startswith("{")]
+    result = json.loads(line)
+    assert result["code"] == 0, result["after"]
+    done = re.search(r"condition 1/2 done: .* p_cur distance (\d\.\d+)", result["before"])
+    assert done is not None, result["before"]
+    assert "condition 1/2  iter" not in result["after"]  # the first condition kept
+    assert "condition 2/2 done" in result["after"]
+    summary = json.loads((out / "summary.json").read_text())
+    first, second = summary["conditions"]
+    assert f"{first['local_final_distance']:.4f}" == done.group(1)
+    assert second["condition"] == 1

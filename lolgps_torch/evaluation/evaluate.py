@@ -35,6 +35,7 @@ from lolgps_torch.evaluation.square import SquareConfig, square_test_positions
 from lolgps_torch.evaluation.transfer import compute_scratch, rates_by_condition, transfer_rows
 from lolgps_torch.evaluation.worker import Job, PolicyState, Position
 from lolgps_torch.lolgps.run import RunInfo, read_run
+from lolgps_torch.sim.franka import SIMULATED, RealArmConfig
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.simulator import Simulator
 
@@ -215,6 +216,7 @@ def _roll_out(
     workers: int,
     batch_size: int,
     ray: str | None,
+    real: RealArmConfig,
 ) -> list[JobResult]:
     """Every policy of ``states`` at every position of ``groups``, in batches of
     ``batch_size`` rollouts, on ``workers`` processes or (``ray``) on Ray actors."""
@@ -223,7 +225,7 @@ def _roll_out(
     jobs = [Job(i, batch) for i in range(len(states)) for batch in batches]
     n_worlds = min(batch_size, len(flat))
     if ray is None:
-        return run_jobs(info.task, states, jobs, workers, n_worlds)
+        return run_jobs(info.task, states, jobs, workers, n_worlds, real)
     address = None if ray == "local" else ray
     return run_jobs_on_ray(info.task, states, jobs, address, workers, n_worlds)
 
@@ -239,6 +241,7 @@ def evaluate_run(
     ray: str | None = None,
     plant: PlantConfig | None = None,
     sim: Simulator | None = None,
+    real: RealArmConfig = SIMULATED,
 ) -> dict[str, Any]:
     """Evaluate every stage's checkpoint of ``run_dir`` and write its ``eval.json``.
 
@@ -256,6 +259,8 @@ def evaluate_run(
         instance of ``workers`` CPUs, anything else is a cluster address (e.g. ``auto``).
     :param plant: the simulated arm to evaluate on (default: the run's own).
     :param sim: the simulator to evaluate in (default: the run's own).
+    :param real: the arm to evaluate on: a real one (``--arm franka``) runs the rollouts one
+        at a time in this process.
     :returns: the dict written to ``eval.json``.
     """
     if areas is not None and positions is not None:
@@ -280,7 +285,8 @@ def evaluate_run(
         groups = _square_group(*square, info)
     else:
         groups = _area_groups(areas) if areas is not None else _position_groups(positions or [])
-    results = _roll_out(info, [policy for _, policy in policies], groups, workers, batch_size, ray)
+    rolled = [policy for _, policy in policies]
+    results = _roll_out(info, rolled, groups, workers, batch_size, ray, real)
     stages = _stage_results(folder, info, policies, groups, results)
     evaluated = [s for s, _ in policies]
     evaluation = {

@@ -34,6 +34,7 @@ from lolgps_torch.evaluation.worker import (
     run_worker,
 )
 from lolgps_torch.progress import Bar
+from lolgps_torch.sim.franka import SIMULATED, RealArmConfig
 from lolgps_torch.sim.pool import main_script_hidden
 from lolgps_torch.sim.rollout import Rollouts as SimRollouts
 from lolgps_torch.task import PegTask, TaskConfig
@@ -134,9 +135,11 @@ def run_jobs(
     jobs: Sequence[Job],
     workers: int,
     n_worlds: int,
+    real: RealArmConfig = SIMULATED,
 ) -> list[JobResult]:
     """Results of ``jobs``, in order, from ``workers`` processes: this one and ``workers - 1``
-    spawned ones, all on one torch thread, each claiming the next unclaimed job.
+    spawned ones, all on one torch thread, each claiming the next unclaimed job (on a real
+    arm, ``real``, this process alone).
 
     This process starts the workers, builds ``task`` with ``n_worlds`` worlds, sends the
     workers its arm, world settings and placement and the ``policies`` the jobs name
@@ -155,6 +158,7 @@ def run_jobs(
     processes = [
         context.Process(target=run_worker, args=(setups, list(jobs), counter, results))
         for _ in range(min(workers, len(jobs)) - 1)
+        if real.arm == "simulated"
     ]
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -163,7 +167,7 @@ def run_jobs(
         with main_script_hidden():
             for process in processes:
                 process.start()  # the workers import while this process builds the task
-        peg = PegTask(task, n_worlds=n_worlds)
+        peg = PegTask(task, n_worlds=n_worlds, real=real)
         roller = PolicyRoller(peg.sampler, peg.model, policies)
         for _ in processes:
             setups.put(_setup(peg, n_worlds, policies))

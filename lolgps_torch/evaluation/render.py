@@ -26,6 +26,7 @@ from lolgps_torch.errors import LolgpsError, check_fields
 from lolgps_torch.evaluation.scene import Clip, Scene, View, caption
 from lolgps_torch.lolgps.run import LoadedRun
 from lolgps_torch.policy.actor import policy_actor
+from lolgps_torch.sim.franka import SIMULATED, RealArmConfig
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 
@@ -256,11 +257,13 @@ def render_run(
     config: RenderConfig,
     out: Path,
     after: int | None = None,
+    real: RealArmConfig = SIMULATED,
 ) -> list[Clip]:
     """Film the noiseless rollouts at ``conditions`` (module docstring; the policy
     checkpointed after condition ``after``, default the last) into ``out``; returns the
-    clips, whose final distances the captions show."""
-    task = loaded.make_task(n_worlds=min(len(conditions), 8))
+    clips, whose final distances the captions show. On a real arm (``real``) the rollouts
+    run on it and the display replays their joint angles."""
+    task = loaded.make_task(min(len(conditions), 8), real)
     try:
         clips = record_clips(loaded, task, conditions, config.who, after)
         render_clips(task, clips, config, out)

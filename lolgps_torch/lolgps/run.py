@@ -18,6 +18,7 @@ from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.stream import StreamConfig
 from lolgps_torch.policy.net import GaussianPolicy
+from lolgps_torch.sim.franka import SIMULATED, RealArmConfig
 from lolgps_torch.task import PegTask, TaskConfig
 
 Position = tuple[float, float]
@@ -113,9 +114,10 @@ class LoadedRun:
     records: list[ConditionRecord]
     device: torch.device
 
-    def make_task(self, n_worlds: int = 5) -> PegTask:
-        """The run's task with ``n_worlds`` worlds (the caller closes it)."""
-        return PegTask(self.info.task, n_worlds=n_worlds, device=str(self.device))
+    def make_task(self, n_worlds: int = 5, real: RealArmConfig = SIMULATED) -> PegTask:
+        """The run's task with ``n_worlds`` worlds, or on the real arm ``real`` (the caller
+        closes it)."""
+        return PegTask(self.info.task, n_worlds=n_worlds, device=str(self.device), real=real)
 
     def policy(self, condition: int | None = None) -> GaussianPolicy:
         """The global policy checkpointed after ``condition`` (default: the last completed

@@ -483,7 +483,8 @@ class ArmWorld(World):
             self._state = self.device.move_to(q, self.real.move_speed)
         except ArmFaultError as error:
             raise LolgpsError(
-                f"the arm could not be brought to the start pose: {error.reason}"
+                f"the arm could not be brought to the start pose: {error.reason} (the run "
+                "continues from its last finished condition with --resume)"
             ) from None
         self._moving = False
 
