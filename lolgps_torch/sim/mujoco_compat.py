@@ -11,7 +11,11 @@ form it has:
 - the margin and gap of a contact between two geoms: the larger of their values until 3.5,
   their sum since.
 
-:func:`same_contact` sets the last two explicitly, so every release simulates the same contact.
+:func:`same_contact` sets the last two explicitly, so that every release is given the same
+contact model. Measured with the KUKA (3.3.7 against 4.0.1): free motion is the same to
+rounding (1e-13 over 40 control steps of random torques); pushed down by 30 N onto the table or
+the hole for 60 steps, the peg's tip takes paths up to 7 mm apart and comes to rest within
+1.2 mm, since 3.8 reimplemented multi-point contact (with it off in both, up to 1.4 mm apart).
 """
 
 from __future__ import annotations
