@@ -48,7 +48,6 @@ CHUNK_FILE = "chunk-000/file-000"  # each table and the video are one file, the 
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 CAMERA = "observation.images.camera"
-INDEX_FEATURES = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 INSTALL = "pip install 'lolgps_torch[lerobot]'"
 
