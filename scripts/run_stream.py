@@ -25,6 +25,9 @@ from a few excitation rollouts at the start pose (``lolgps_torch/sim/latency.py`
 random streams of its own); a delay found (not zero) becomes the learner's known delay, and
 from half a control step on the first controller is the hold (``--model-plans 0``), as one
 printed line, config.json's and summary.json's ``detected_delay`` (s) say.
+
+With ``--arm franka --robot-ip IP`` the rollouts run on a Franka, one at a time, neither
+detection runs, and each rollout is reported in one line (docs/REAL_ARM.md).
 """
 
 from __future__ import annotations

@@ -170,7 +170,7 @@ def test_speed_reflex_reported_and_recovered(fr3: Path) -> None:
 def test_stalled_learner_ends_rollout(fr3: Path) -> None:
     """The learner stalls 100 ms within a rollout, the server enforcing the protocol's
     timing: the rollout ends as a fault (the arm's loop, keeping the protocol's pace, ends
-    the torque command when the learner's command is later than its deadline, 50 ms here),
+    the torque command when the learner's command is later than its deadline, 90 ms here),
     and the next rollout runs."""
     result = run_script(
         fr3,
@@ -179,12 +179,12 @@ def test_stalled_learner_ends_rollout(fr3: Path) -> None:
         reason = world.fault
         after = sampler.rollout(Act([0.0] * 7), [(0.0, 0.0)])
         print(json.dumps({"stalled": bool(stalled.fault[0]), "reason": reason,
-                          "after": bool(after.fault[0])}))
+                          "after": world.fault}))
         """,
         reflexes=True,
-        deadline=0.05,
+        deadline=0.09,
     )
-    assert result["stalled"] and not result["after"]
+    assert result["stalled"] and result["after"] is None, result["after"]
     assert "late" in str(result["reason"])
 
 

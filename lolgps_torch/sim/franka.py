@@ -31,9 +31,11 @@ Three parts, from the wire up:
 from __future__ import annotations
 
 import contextlib
+import gc
 import math
 import multiprocessing
 import multiprocessing.connection
+import signal
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -333,7 +335,9 @@ class _Loop:
 
 def _serve(conn: multiprocessing.connection.Connection, config: RealArmConfig,
            effort: np.ndarray) -> None:  # fmt: skip
-    """The arm's process: connect, say so (or why not), then serve the learner."""
+    """The arm's process: connect, say so (or why not), then serve the learner.  Ctrl-C is
+    the learner's to handle: the loop ends its motion when the learner closes it or is gone."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         loop = _Loop(conn, config, effort)
     except Exception as error:  # noqa: BLE001 - any failure to connect, said in one line
@@ -411,7 +415,8 @@ class FrankaArm:
     def move_to(self, q: np.ndarray, speed: float) -> JointState:
         state = self.read_state()
         seconds = 1.875 * float(np.abs(np.asarray(q) - state.q).max()) / speed + SETTLE
-        return self._ask("move", np.asarray(q, dtype=np.float64), speed, seconds=seconds)
+        # the arm's ticks, not the wall clock, pace the move: allow for a slow stand-in
+        return self._ask("move", np.asarray(q, dtype=np.float64), speed, seconds=4 * seconds)
 
     def stats(self) -> LoopStats:
         return self._stats
@@ -523,6 +528,7 @@ class ArmWorld(World):
         return self._dynamics.joint_damping.clone()
 
     def close(self) -> None:
+        gc.enable()
         self.device.close()
 
     # the interface's rollout on the arm
@@ -553,7 +559,8 @@ class ArmWorld(World):
         super().set_hole(offset)
 
     def _stop_arm(self) -> None:
-        """End a torque command left running (a rollout ended early)."""
+        """End a torque command left running, and let the garbage collector run again."""
+        gc.enable()
         if self._moving:
             try:
                 self._state = self.device.stop()
@@ -562,9 +569,14 @@ class ArmWorld(World):
             self._moving = False
 
     def reset(self, q0: np.ndarray, key: tuple[int, ...] = (0,)) -> np.ndarray:
-        """Recover the arm if it faulted, move it to ``q0`` slowly, and return the state."""
+        """Recover the arm if it faulted, move it to ``q0`` slowly, and return the state.
+        The garbage collector runs now, while the arm rests, and not again until the rollout
+        ends: a collection of the learner's heap can pause it past the deadline."""
         self._before = self.device.stats()
-        return super().reset(q0, key)
+        state = super().reset(q0, key)
+        gc.collect()
+        gc.disable()
+        return state
 
     def step(self, u: np.ndarray) -> np.ndarray:
         """:meth:`World.step` on the arm, the control step's command sent at once (held for
