@@ -198,6 +198,7 @@ TASK_FLAGS = ConfigFlags(
         "compensate-gravity": ("world.compensate_gravity",),
         "action-weight": ("cost.action_weight",),
         "speed-weight": ("cost.speed_weight",),
+        "speed-free": ("cost.speed_free",),
         "descent-height": ("cost.descent_height",),
         "descent-steps": ("cost.descent_steps",),
         **{flag: (f"plant.{name}",) for flag, (name,) in PLANT_FLAGS.renames.items()},

@@ -181,11 +181,12 @@ def test_cost_gradient_and_gauss_newton_hessian(task: PegTask) -> None:
     H = torch.autograd.functional.hessian(linearised, torch.zeros(7, dtype=torch.float64))
     assert torch.allclose(e.lxx[0, 0][task.layout.q, task.layout.q], H, atol=1e-6)
     assert torch.allclose(e.luu[0, 0], torch.diag(task.cost.wu))
-    qd = task.layout.qd  # the speed term, in units of the velocity limits
+    qd = task.layout.qd  # the speed term: its curvature where a joint is past the free share
     velocity = torch.tensor(task.arm.velocity, dtype=torch.float64)
     wv = task.cost.config.speed_weight / velocity**2
-    assert task.cost.config.speed_weight > 0
-    assert torch.allclose(e.lxx[0, 0][qd, qd], torch.diag(wv))
+    past = x[0, 0, qd].abs() > task.cost.config.speed_free * velocity
+    assert task.cost.config.speed_weight > 0 and past.any() and not past.all()
+    assert torch.allclose(e.lxx[0, 0][qd, qd], torch.diag(wv * past))
 
     quad = to_quadratic(e, x, u)  # exact at every sample when N = 1
     e1 = task.cost.expand(x[:1], u[:1], targets)

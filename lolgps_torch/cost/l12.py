@@ -1,6 +1,7 @@
 """The peg-insertion cost (paper eq. 9, docs/ALGORITHM.md section 2) and its quadratic expansion.
 
-    l(x_t, u_t) = 1/2 sum_j wu_j u_j^2  +  1/2 sum_j wv_j q-dot_j^2  +  m_t * l12(z_t),
+    l(x_t, u_t) = 1/2 sum_j wu_j u_j^2  +  1/2 sum_j wv_j e_j^2  +  m_t * l12(z_t),
+    e_j = max(0, |q-dot_j| - s v_j),
     l12(z)      = 1/2 l2 |z|^2 + l1 sqrt(gamma + |z|^2),
     z_t         = A (p(q_t) - p*_t),     p*_t = p* + h_t e_z,   h_t = h_0 max(0, 1 - t / t_d),
 
@@ -8,10 +9,13 @@ where p(q) stacks the tip and top points (6), p* their targets, and A (8 x 6) ho
 sqrt(per-axis point weights) on its first six rows and sqrt(tilt weight) times the lateral
 offset between tip and top on the last two.  m_t is 1, or ``final_multiplier`` at t = T-1.
 wu_j = action_weight / effort_j^2, so the action cost is in units of the effort limits, and
-wv_j = speed_weight / v_j^2 (v_j the joint's velocity limit), so the speed cost is in units of
-the velocity limits: the C-step sees it exactly (it is quadratic in the state), and keeps the
-first commands from flinging the arm towards the lifted target faster than its joints may move
-(docs/ALGORITHM.md section 2; ``scripts/research/speed_limits.py``).
+wv_j = speed_weight / v_j^2 (v_j the joint's velocity limit, s = ``speed_free``): a joint's
+speed costs nothing up to the share s of its limit, and beyond it the excess, in units of the
+limit, costs quadratically. It keeps the first commands from flinging the arm towards the
+lifted target faster than its joints may move (docs/ALGORITHM.md section 2;
+``scripts/research/speed_limits.py``) and leaves slower motion as it was. Its expansion is
+exact at each sample: gradient ``wv_j e_j sign(q-dot_j)`` and curvature ``wv_j`` where
+``e_j > 0``, both 0 elsewhere.
 
 The descent schedule (h_0 = ``descent_height``, t_d = ``descent_steps``; off when either is
 0) lifts both targets by h_t, so the optimal trajectory first aligns over the hole and
@@ -51,6 +55,7 @@ class CostConfig:
     :param descent_height: h_0, the height (m) the targets are lifted by at t = 0.
     :param descent_steps: t_d, the step at which the lifted targets reach p*.
     :param speed_weight: wv in units of the velocity limits.
+    :param speed_free: s, the share of each joint's velocity limit below which speed is free.
     """
 
     l1: float = 0.1
@@ -63,11 +68,14 @@ class CostConfig:
     action_weight: float = 1.0
     descent_height: float = 0.2
     descent_steps: int = 40
-    speed_weight: float = 3.0
+    speed_weight: float = 10.0
+    speed_free: float = 0.5
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed_weight) and self.speed_weight >= 0.0):
             raise LolgpsError(f"--speed-weight must be >= 0 and finite, got {self.speed_weight}")
+        if not 0.0 <= self.speed_free < 1.0:
+            raise LolgpsError(f"--speed-free must be in [0, 1), got {self.speed_free}")
 
 
 class CostExpansion(NamedTuple):
@@ -100,11 +108,13 @@ class PegCost:
         self.layout = layout
         dev = kinematics.device
         self.wu = config.action_weight / effort.to(dtype=torch.float64, device=dev) ** 2
-        self.wv = (
-            torch.zeros_like(self.wu)
+        limit = (
+            torch.full_like(self.wu, math.inf)
             if velocity is None
-            else config.speed_weight / velocity.to(dtype=torch.float64, device=dev) ** 2
+            else velocity.to(dtype=torch.float64, device=dev)
         )
+        self.wv = config.speed_weight / limit**2  # 0 without limits
+        self.free = config.speed_free * limit  # the speed below which motion is free
         axis = torch.tensor(
             [config.lateral_weight, config.lateral_weight, config.vertical_weight],
             dtype=torch.float64,
@@ -147,10 +157,14 @@ class PegCost:
         value, _ = self._l12(d @ self.A.T)
         return self._effort(x, u) + self._multiplier(x.shape[-2], x) * value
 
+    def _excess(self, x: Tensor) -> Tensor:
+        """``e = max(0, |q-dot| - s v)`` per joint, ``[..., dU]``."""
+        return (x[..., self.layout.qd].abs() - self.free).clamp(min=0.0)
+
     def _effort(self, x: Tensor, u: Tensor) -> Tensor:
-        """The action and speed terms ``1/2 sum wu u^2 + 1/2 sum wv q-dot^2``, ``[N, T]``."""
-        qd = x[..., self.layout.qd]
-        return 0.5 * (self.wu * u * u).sum(-1) + 0.5 * (self.wv * qd * qd).sum(-1)
+        """The action and speed terms ``1/2 sum wu u^2 + 1/2 sum wv e^2``, ``[N, T]``."""
+        e = self._excess(x)
+        return 0.5 * (self.wu * u * u).sum(-1) + 0.5 * (self.wv * e * e).sum(-1)
 
     def expand(self, x: Tensor, u: Tensor, targets: Tensor) -> CostExpansion:
         """Value, gradient and Gauss-Newton Hessian at every sample and step."""
@@ -174,10 +188,11 @@ class PegCost:
         qd = self.layout.qd
         lx = x.new_zeros(N, T, dX)
         lx[..., self.layout.q] = lq
-        lx[..., qd] = self.wv * x[..., qd]
+        e = self._excess(x)
+        lx[..., qd] = self.wv * e * x[..., qd].sign()
         lxx = x.new_zeros(N, T, dX, dX)
         lxx[..., self.layout.q, self.layout.q] = lqq
-        lxx[..., qd, qd] = torch.diag_embed(self.wv.expand(N, T, dU))
+        lxx[..., qd, qd] = torch.diag_embed(self.wv * (e > 0))
         lu = self.wu * u
         luu = torch.diag_embed(self.wu.expand(N, T, dU))
         lux = x.new_zeros(N, T, dU, dX)
