@@ -53,6 +53,7 @@ from lolgps_torch.cli import (
     read_offsets,
     run,
     scale_factor,
+    start_rollouts,
     task_config,
     workers,
 )
@@ -197,6 +198,7 @@ def check_folder(folder: RunFolder, config: dict[str, Any], resume: bool) -> Non
 
 # config.json's and summary.json's note of a gravity compensation found missing
 GRAVITY_NOTE = "detected_gravity_compensation"
+START_NOTE = "start_rollouts"  # config.json's count of the probes' rollouts before the stream
 
 
 def detected_gravity(args: argparse.Namespace, task: TaskConfig, folder: RunFolder) -> bool:
@@ -247,6 +249,16 @@ def plan_run(args: argparse.Namespace) -> Plan:
     conditions = list(task.placement.positions)
     urdf_text = arm_urdf(task)
     noted: dict[str, Any] = {}
+    simulated = args.arm == "simulated"
+    start = (  # the rollouts the probes below take on the arm (as recorded, on --resume)
+        folder.read_config().get(START_NOTE)
+        if args.resume
+        else start_rollouts(
+            task, args.detect_gravity and simulated, args.detect_delay and simulated
+        )
+    )
+    if start is not None:
+        noted[START_NOTE] = start
     if detected_gravity(args, task, folder):  # before the delay's excitation, which it steadies
         task = compensate_gravity(task)
         noted[GRAVITY_NOTE] = "none"
@@ -296,11 +308,12 @@ def _record_line(record: IterationRecord | IdentifiedRecord | DistillRecord, tot
 
 def _condition_line(entry: ConditionSummary, total: int) -> str:
     failure = f"; failed: {entry.failure}" if entry.failure else ""
+    kinds = ", ".join(f"{n} {kind}s" for kind, n in entry.arm_rollouts.items())
     return (
         f"condition {entry.condition + 1}/{total} done: first success at iteration "
         f"{entry.first_success_iteration}, p_cur distance {entry.local_final_distance:.4f}, "
         f"global policy distance {entry.policy_final_distance_after:.4f}, faults "
-        f"{entry.faults}{failure}"
+        f"{entry.faults}; arm rollouts {sum(entry.arm_rollouts.values())} ({kinds}){failure}"
     )
 
 
@@ -348,10 +361,24 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
             "method": plan.method,
             "seed": plan.config["seed"],
             **detected,
+            "arm_rollouts": arm_rollouts(summary, int(plan.config.get(START_NOTE) or 0)),
             "conditions": [e.to_json() for e in summary],
         }
     )
     return summary
+
+
+def arm_rollouts(summary: list[ConditionSummary], start: int) -> dict[str, int]:
+    """The stream's rollouts on the arm by kind: ``start`` (the probes before the stream), the
+    conditions' samples, probes and visits, and the final policy's check at every condition
+    (a probe each), with their ``total``."""
+    kinds = {"start": start}
+    for entry in summary:
+        for kind, count in entry.arm_rollouts.items():
+            kinds[kind] = kinds.get(kind, 0) + count
+    if any(entry.arm_rollouts for entry in summary):  # the final check, where counted
+        kinds["probe"] = kinds.get("probe", 0) + len(summary)
+    return {**kinds, "total": sum(kinds.values())}
 
 
 def main() -> None:

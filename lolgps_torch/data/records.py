@@ -9,7 +9,7 @@ of ``metrics.jsonl``;
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal
 
 from lolgps_torch.errors import LolgpsError
@@ -105,6 +105,9 @@ class ConditionSummary:
     :param visited_rows: states the policy visited in the S-step that got a label.
     :param faults: rollouts drawn at the condition that the arm's controller stopped at a
         limit (counted as failures).
+    :param arm_rollouts: the rollouts run on the arm for the condition, by kind: ``sample``
+        (local learning), ``probe`` (noiseless checks of a controller or of the policy) and
+        ``visit`` (the policy's rollouts in the S-step); empty in runs that did not count them.
     """
 
     condition: int
@@ -124,6 +127,7 @@ class ConditionSummary:
     policy_rollouts: int = 0
     visited_rows: int = 0
     faults: int = 0
+    arm_rollouts: dict[str, int] = field(default_factory=dict)
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 
