@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import time
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -336,9 +337,10 @@ def _print_table(summary: list[ConditionSummary], folder: RunFolder) -> None:
     )
 
 
-def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
+def learn(plan: Plan, task: PegTask, started: float) -> list[ConditionSummary]:
     """Run the plan's learner in its folder, logging every record to metrics.jsonl and the
-    terminal (with a bar over the conditions on a terminal); write summary.json at the end."""
+    terminal (with a bar over the conditions on a terminal); write summary.json at the end,
+    with the wall time since ``started`` (``time.perf_counter``)."""
     folder, total = plan.folder, len(plan.conditions)
     bar = Bar(total, "conditions")
 
@@ -362,6 +364,7 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
             "seed": plan.config["seed"],
             **detected,
             "arm_rollouts": arm_rollouts(summary, int(plan.config.get(START_NOTE) or 0)),
+            "seconds": time.perf_counter() - started,
             "conditions": [e.to_json() for e in summary],
         }
     )
@@ -382,6 +385,7 @@ def arm_rollouts(summary: list[ConditionSummary], start: int) -> dict[str, int]:
 
 
 def main() -> None:
+    started = time.perf_counter()
     args = parse_args()
     processes = workers(args)  # checked before the placement's search
     real = arm_config(args)
@@ -392,7 +396,7 @@ def main() -> None:
             placed = replace(plan.task, placement=pinned(plan.task.placement, task.geometry))
             config = {**plan.config, "task": task_json(placed, plan.urdf_text)}
             plan.folder.start(config, plan.urdf_text)
-        summary = learn(plan, task)
+        summary = learn(plan, task, started)
     finally:
         task.close()
     _print_table(summary, plan.folder)

@@ -69,13 +69,15 @@ class IdentifiedRecord:
 
 @dataclass(frozen=True)
 class DistillRecord:
-    """One S-step: after ``condition`` (the stream) or after ``iteration`` (batch GPS)."""
+    """One S-step: after ``condition`` (the stream) or after ``iteration`` (batch GPS), its
+    wall time (s) and, of it, the policy's rollouts' (its check and visits)."""
 
     condition: int
     time_distill: float
     distill_rows: int
     iteration: int | None = None
     repairs: int | None = None
+    time_visits: float | None = None
     event: Literal["distilled"] = "distilled"
 
     def to_json(self) -> dict[str, Any]:

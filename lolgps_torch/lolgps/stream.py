@@ -224,7 +224,10 @@ class StreamLearner:
         checked = self.sstep(self.policy, Labelled(offset, data, labels), seed)
         losses, after, repairs = checked.losses, checked.distances[-1], checked.rounds
         rows = int(data.x.shape[0]) * self.task.T
-        self.log(DistillRecord(index, time.perf_counter() - t0, rows, repairs=repairs))
+        seconds = time.perf_counter() - t0
+        self.log(
+            DistillRecord(index, seconds, rows, repairs=repairs, time_visits=checked.visit_seconds)
+        )
         entry = ConditionSummary(
             condition=index,
             offset=list(offset),
