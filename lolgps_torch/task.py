@@ -575,10 +575,10 @@ def measure_gravity(config: TaskConfig, settings: GravityConfig) -> GravityEstim
     :func:`probe_world` without the learner's own compensation."""
     world_config = replace(config.world, compensate_gravity=False)
     with probe_world(replace(config, world=world_config)) as (world, q0):
-        states = let_go(world, q0, settings)
+        moves = let_go(world, q0, settings)
         inertia = world.effective_inertia(q0.tolist()).numpy()
         arm = world.arm
-    return estimate_gravity(states, arm, world_config, inertia)
+    return estimate_gravity(moves, arm, world_config, inertia)
 
 
 def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:

@@ -340,7 +340,8 @@ def _print_table(summary: list[ConditionSummary], folder: RunFolder) -> None:
 def learn(plan: Plan, task: PegTask, started: float) -> list[ConditionSummary]:
     """Run the plan's learner in its folder, logging every record to metrics.jsonl and the
     terminal (with a bar over the conditions on a terminal); write summary.json at the end,
-    with the wall time since ``started`` (``time.perf_counter``)."""
+    and the wall time since ``started`` (``time.perf_counter``) as metrics.jsonl's last line
+    (summary.json holds only what the seed decides)."""
     folder, total = plan.folder, len(plan.conditions)
     bar = Bar(total, "conditions")
 
@@ -357,6 +358,7 @@ def learn(plan: Plan, task: PegTask, started: float) -> list[ConditionSummary]:
         summary = learner.run(plan.conditions, done)
     finally:
         bar.close()
+    folder.append_metrics({"event": "finished", "seconds": time.perf_counter() - started})
     detected = {k: v for k, v in plan.config.items() if k in (GRAVITY_NOTE, "detected_delay")}
     folder.write_summary(
         {
@@ -364,7 +366,6 @@ def learn(plan: Plan, task: PegTask, started: float) -> list[ConditionSummary]:
             "seed": plan.config["seed"],
             **detected,
             "arm_rollouts": arm_rollouts(summary, int(plan.config.get(START_NOTE) or 0)),
-            "seconds": time.perf_counter() - started,
             "conditions": [e.to_json() for e in summary],
         }
     )

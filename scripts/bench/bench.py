@@ -33,7 +33,7 @@ Medians over the repeats; the machine is noisy, so compare ratios, not seconds.
 
 ``--runs`` measures nothing: it prints one markdown row per finished run folder, the final
 policy's successes at the training positions (summary.json), the run's wall seconds
-(summary.json), the seconds metrics.jsonl records for sampling, dynamics fits, C-steps (with
+(metrics.jsonl's last line), the seconds metrics.jsonl records for sampling, dynamics fits, C-steps (with
 the plans on the model), the S-steps' fits (with their repair rounds) and the S-steps' policy
 rollouts (the checks and visits), the rest of the wall time (start-up: imports of the script
 aside, the placement, the probes before the stream, the worker processes), the rollouts on
@@ -308,15 +308,16 @@ def stream_times(paths: list[str]) -> None:
     for path in paths:
         folder = RunFolder(path)
         sums = dict.fromkeys((*PARTS.values(), "time_visits"), 0.0)
-        repairs = 0
+        repairs, wall = 0, float("nan")
         for record in folder.read_metrics():
+            if record.get("event") == "finished":
+                wall = float(record["seconds"])
             for phase in sums:
                 sums[phase] += float(record.get(phase) or 0.0)
             repairs += int(record.get("repairs") or 0)
         summary = folder.read_summary()
         entries = summary["conditions"]
         final = sum(bool(e["policy_success_end"]) for e in entries)
-        wall = float(summary.get("seconds", float("nan")))
         fits = sums["time_distill"] - sums["time_visits"]
         parts = [sums["time_sample"], sums["time_fit"], sums["time_cstep"], fits]
         rest = wall - sum(parts) - sums["time_visits"]
