@@ -248,7 +248,7 @@ def _checked(
 
 def test_a_missed_condition_is_repaired_with_its_rows_twice() -> None:
     checked, distill, policy = _checked([[0.001, 0.2], [0.3, 0.2], [0.001, 0.001]], repairs=3)
-    assert checked == ([3.0], [0.001, 0.001], 2, None, 6)
+    assert checked == ([3.0], [0.001, 0.001], 2, None, 6, 0.0)
     # the first S-step in full; repairs from the best so far, a third of the steps, the missed
     # condition (place 1: the new one, after the replay's) emphasised
     steps = PolicyConfig().steps
