@@ -282,7 +282,7 @@ def detect_delay(task: TaskConfig, enabled: bool) -> float:
     """The arm's command delay (s) estimated from excitation rollouts at the start pose
     (:func:`~lolgps_torch.task.measure_delay`), said in one line when not zero; 0 when not
     ``enabled`` or when the task already allows for a known delay."""
-    if not enabled or task.world.known_delay > 0.0:
+    if not delay_probed(task, enabled):
         return 0.0
     settings = DelayConfig()
     estimate = measure_delay(task, settings)
@@ -293,6 +293,25 @@ def detect_delay(task: TaskConfig, enabled: bool) -> float:
             "(--known-delay; --no-detect-delay to learn without)"
         )
     return estimate.seconds
+
+
+def delay_probed(task: TaskConfig, enabled: bool) -> bool:
+    """Whether :func:`detect_delay` rolls the arm out: ``enabled`` and no known delay."""
+    return enabled and task.world.known_delay <= 0.0
+
+
+def gravity_probed(task: TaskConfig, enabled: bool) -> bool:
+    """Whether :func:`detect_gravity` rolls the arm out: ``enabled`` and the learner does not
+    compensate gravity already."""
+    return enabled and not task.world.compensate_gravity
+
+
+def start_rollouts(task: TaskConfig, gravity: bool, delay: bool) -> int:
+    """The rollouts on the arm before the stream: :func:`detect_gravity`'s (``gravity``
+    enabled) and :func:`detect_delay`'s (``delay`` enabled) on ``task``."""
+    return GravityConfig().rollouts * gravity_probed(task, gravity) + DelayConfig().rollouts * (
+        delay_probed(task, delay)
+    )
 
 
 def allow_for_delay(
@@ -325,7 +344,7 @@ def detect_gravity(task: TaskConfig, enabled: bool) -> bool:
     start pose (:func:`~lolgps_torch.task.measure_gravity`), said in one line when they do or
     when the probe cannot tell (then they are taken as compensated); False when not
     ``enabled`` or when the task already compensates them."""
-    if not enabled or task.world.compensate_gravity:
+    if not gravity_probed(task, enabled):
         return False
     settings = GravityConfig()
     estimate = measure_gravity(task, settings)

@@ -18,8 +18,11 @@ and the points' finite-difference velocities over the control step dt.
 
 Action: torque on top of gravity compensation; the world applies
 ``clip(u + g(q), -effort, effort)``.  Reward: ``-l(x_t, u_t)``, the l12 + action cost of the
-state before the step.  Step info: ``tip_distance`` (m) after the step and ``success``
-(``tip_distance < success_threshold``); reset info: ``hole_offset``.
+state before the step.  Step info: ``tip_distance`` (m) after the step, ``success``
+(``tip_distance < success_threshold`` and no fault) and ``fault`` (None, or why the arm's
+controller stopped the arm: a joint past its velocity limit or near a position limit, which
+ends the episode as terminated, as it ends a real arm's motion; ``PlantConfig.limits``);
+reset info: ``hole_offset``.
 
 The observation space is bounded by limits that hold for every state of an episode of T steps
 (:func:`observation_bounds`): PyBullet does not enforce URDF joint limits under torque control,
@@ -172,12 +175,13 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
         cost = self._cost(self._x, u, self._t)
         self._x = self.world.step(u)
         self._t += 1
-        distance = self.world.tip_distance()
+        distance, fault = self.world.tip_distance(), self.world.fault
         info = {
             "tip_distance": distance,
-            "success": distance < self.task.config.world.success_threshold,
+            "success": distance < self.task.config.world.success_threshold and fault is None,
+            "fault": fault,
         }
-        return self._x.copy(), -cost, False, self._t >= self.task.T, info
+        return self._x.copy(), -cost, fault is not None, self._t >= self.task.T, info
 
     def _cost(self, x: np.ndarray, u: np.ndarray, t: int) -> float:
         """``l(x_t, u_t)`` as the task scores step t of a T-step rollout (its final multiplier

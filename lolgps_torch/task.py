@@ -8,10 +8,11 @@ from __future__ import annotations
 import math
 import os
 import warnings
+from collections import Counter
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
@@ -55,6 +56,9 @@ from lolgps_torch.sim.simulator import Simulator, World, WorldConfig, check_plan
 from lolgps_torch.sim.world import PegWorld
 from lolgps_torch.state import StateLayout
 from lolgps_torch.types import Trajectories
+
+RolloutKind = Literal["sample", "probe", "visit"]
+ROLLOUT_KINDS: tuple[RolloutKind, ...] = get_args(RolloutKind)
 
 IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses
 CLEARANCE = 0.02  # m: a tip this far above the table touches nothing
@@ -342,6 +346,8 @@ class PegTask:
         self.cost = peg_cost(config.cost, self.arm, self.kinematics, self.layout)
         self._model: ControlStep | None = None
         self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
+        #: the rollouts run on the arm so far, by kind (:meth:`sample`)
+        self.arm_rollouts: Counter[RolloutKind] = Counter()
         self._seen: list[Transitions] = []  # free-space transitions kept for identification
         self._identified: ArmParameters | None = None  # the arm identified last
 
@@ -507,9 +513,15 @@ class PegTask:
         """The joint damping b (N m s/rad) of the URDF, per actuated joint."""
         return self.sampler.worlds[0].joint_damping().to(self.device)
 
-    def sample(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
+    def sample(
+        self, act: Actor, offsets: Sequence[tuple[float, float]], kind: RolloutKind = "sample"
+    ) -> Trajectories:
         """One rollout per offset, each run alone (on the worker processes, if any), scored by
-        the cost; each call's sensor noise is new."""
+        the cost; each call's sensor noise is new. The rollouts are counted in
+        :attr:`arm_rollouts` as ``kind``: a local controller's ``sample``, a ``probe`` (a
+        controller's or the policy's noiseless check) or a ``visit`` of the policy in the
+        S-step."""
+        self.arm_rollouts[kind] += len(offsets)
         batch, self._batches = self._batches, self._batches + 1
         if self.pool is None:
             rolled = rollout_rows(self.sampler, act, offsets, range(len(offsets)), batch)
@@ -563,10 +575,10 @@ def measure_gravity(config: TaskConfig, settings: GravityConfig) -> GravityEstim
     :func:`probe_world` without the learner's own compensation."""
     world_config = replace(config.world, compensate_gravity=False)
     with probe_world(replace(config, world=world_config)) as (world, q0):
-        states = let_go(world, q0, settings)
+        moves = let_go(world, q0, settings)
         inertia = world.effective_inertia(q0.tolist()).numpy()
         arm = world.arm
-    return estimate_gravity(states, arm, world_config, inertia)
+    return estimate_gravity(moves, arm, world_config, inertia)
 
 
 def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import time
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -56,6 +57,7 @@ from lolgps_torch.cli import (
     read_offsets,
     run,
     scale_factor,
+    start_rollouts,
     task_config,
     workers,
 )
@@ -200,6 +202,7 @@ def check_folder(folder: RunFolder, config: dict[str, Any], resume: bool) -> Non
 
 # config.json's and summary.json's note of a gravity compensation found missing
 GRAVITY_NOTE = "detected_gravity_compensation"
+START_NOTE = "start_rollouts"  # config.json's count of the probes' rollouts before the stream
 
 
 def detected_gravity(args: argparse.Namespace, task: TaskConfig, folder: RunFolder) -> bool:
@@ -250,6 +253,16 @@ def plan_run(args: argparse.Namespace) -> Plan:
     conditions = list(task.placement.positions)
     urdf_text = arm_urdf(task)
     noted: dict[str, Any] = {}
+    simulated = args.arm == "simulated"
+    start = (  # the rollouts the probes below take on the arm (as recorded, on --resume)
+        folder.read_config().get(START_NOTE)
+        if args.resume
+        else start_rollouts(
+            task, args.detect_gravity and simulated, args.detect_delay and simulated
+        )
+    )
+    if start is not None:
+        noted[START_NOTE] = start
     if detected_gravity(args, task, folder):  # before the delay's excitation, which it steadies
         task = compensate_gravity(task)
         noted[GRAVITY_NOTE] = "none"
@@ -299,11 +312,12 @@ def _record_line(record: IterationRecord | IdentifiedRecord | DistillRecord, tot
 
 def _condition_line(entry: ConditionSummary, total: int) -> str:
     failure = f"; failed: {entry.failure}" if entry.failure else ""
+    kinds = ", ".join(f"{n} {kind}s" for kind, n in entry.arm_rollouts.items())
     return (
         f"condition {entry.condition + 1}/{total} done: first success at iteration "
         f"{entry.first_success_iteration}, p_cur distance {entry.local_final_distance:.4f}, "
         f"global policy distance {entry.policy_final_distance_after:.4f}, faults "
-        f"{entry.faults}{failure}"
+        f"{entry.faults}; arm rollouts {sum(entry.arm_rollouts.values())} ({kinds}){failure}"
     )
 
 
@@ -326,9 +340,11 @@ def _print_table(summary: list[ConditionSummary], folder: RunFolder) -> None:
     )
 
 
-def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
+def learn(plan: Plan, task: PegTask, started: float) -> list[ConditionSummary]:
     """Run the plan's learner in its folder, logging every record to metrics.jsonl and the
-    terminal (with a bar over the conditions on a terminal); write summary.json at the end."""
+    terminal (with a bar over the conditions on a terminal); write summary.json at the end,
+    and the wall time since ``started`` (``time.perf_counter``) as metrics.jsonl's last line
+    (summary.json holds only what the seed decides)."""
     folder, total = plan.folder, len(plan.conditions)
     bar = Bar(total, "conditions")
 
@@ -345,19 +361,35 @@ def learn(plan: Plan, task: PegTask) -> list[ConditionSummary]:
         summary = learner.run(plan.conditions, done)
     finally:
         bar.close()
+    folder.append_metrics({"event": "finished", "seconds": time.perf_counter() - started})
     detected = {k: v for k, v in plan.config.items() if k in (GRAVITY_NOTE, "detected_delay")}
     folder.write_summary(
         {
             "method": plan.method,
             "seed": plan.config["seed"],
             **detected,
+            "arm_rollouts": arm_rollouts(summary, int(plan.config.get(START_NOTE) or 0)),
             "conditions": [e.to_json() for e in summary],
         }
     )
     return summary
 
 
+def arm_rollouts(summary: list[ConditionSummary], start: int) -> dict[str, int]:
+    """The stream's rollouts on the arm by kind: ``start`` (the probes before the stream), the
+    conditions' samples, probes and visits, and the final policy's check at every condition
+    (a probe each), with their ``total``."""
+    kinds = {"start": start}
+    for entry in summary:
+        for kind, count in entry.arm_rollouts.items():
+            kinds[kind] = kinds.get(kind, 0) + count
+    if any(entry.arm_rollouts for entry in summary):  # the final check, where counted
+        kinds["probe"] = kinds.get("probe", 0) + len(summary)
+    return {**kinds, "total": sum(kinds.values())}
+
+
 def main() -> None:
+    started = time.perf_counter()
     args = parse_args()
     processes = workers(args)  # checked before the placement's search
     real = arm_config(args)
@@ -368,7 +400,7 @@ def main() -> None:
             placed = replace(plan.task, placement=pinned(plan.task.placement, task.geometry))
             config = {**plan.config, "task": task_json(placed, plan.urdf_text)}
             plan.folder.start(config, plan.urdf_text)
-        summary = learn(plan, task)
+        summary = learn(plan, task, started)
     finally:
         task.close()
     _print_table(summary, plan.folder)

@@ -376,12 +376,13 @@ def test_scores_equal_those_of_the_task_itself() -> None:
     try:
         with torch.no_grad():
             lockstep = task.sampler.rollout(lambda t, x, rows: policy(x), list(positions))
-            samples = task.score(*lockstep, list(positions))
+            samples = task.score(lockstep, list(positions))
     finally:
         task.close()
     assert result.final_distance == samples.final_distance.tolist()
     assert result.total_cost == samples.cost.sum(dim=1).tolist()
     assert result.success == samples.success.tolist()
+    assert result.fault == samples.fault.tolist()
 
 
 def test_a_worker_error_reaches_the_caller() -> None:

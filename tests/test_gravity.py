@@ -40,9 +40,9 @@ def _start(arm: ArmSpec) -> np.ndarray:
 
 def _let_go(
     arm: ArmSpec, config: WorldConfig, plant: PlantConfig = NOMINAL_PLANT
-) -> tuple[np.ndarray, np.ndarray]:
-    """The probe's states let go at :func:`_start` in a world of ``plant``, and the joints'
-    effective inertias there."""
+) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """The probe's transitions let go at :func:`_start` in a world of ``plant``, and the
+    joints' effective inertias there."""
     world = PegWorld(arm, config, FAR, plant=plant)
     try:
         world.set_hole((0.0, 0.0))
@@ -84,12 +84,14 @@ def test_speeds_neither_hypothesis_explains_are_taken_as_compensated() -> None:
     explains better than the other: inconclusive, taken as compensated."""
     arm = load_arm(KUKA)
     config = WorldConfig()
-    states, inertia = _let_go(arm, config)
-    fall, _ = _let_go(arm, config, UNCOMPENSATED)
+    free = PlantConfig(limits="off")  # the fall's every step, a limit passed or not
+    rest, inertia = _let_go(arm, config, free)
+    fall, _ = _let_go(arm, config, dataclasses.replace(UNCOMPENSATED, limits="off"))
     lay = config.layout(arm.dof)
-    drift = states.copy()  # half way between rest and the model's fall
-    drift[..., lay.qd] = (states[..., lay.qd] + fall[..., lay.qd]) / 2
-    estimate = estimate_gravity(drift, arm, config, inertia)
+    drift = tuple(states.copy() for states in rest)  # half way between rest and the fall
+    for states, still, falling in zip(drift, rest, fall, strict=True):
+        states[..., lay.qd] = (still[..., lay.qd] + falling[..., lay.qd]) / 2
+    estimate = estimate_gravity((drift[0], drift[1]), arm, config, inertia)
     assert estimate.compensated and not estimate.conclusive
 
 

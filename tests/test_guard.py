@@ -13,6 +13,7 @@ import torch
 from lolgps_torch.data.checkpoint import load_policy, save_policy
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
 from lolgps_torch.policy.guard import Guard, fit_guard, guarded
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.rollout import Rowwise, matmul_rows
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import PegTask, TaskConfig
@@ -48,7 +49,8 @@ def test_the_brake_takes_its_share_of_the_speeds_away_on_the_arm() -> None:
     in PyBullet's world (an independent answer: its own dynamics, gravity compensated), the
     brake's torque held over one control step slows the joint speeds that random torques gave
     the arm by at least beta (the joints' damping takes more), as the arm's model predicts."""
-    task = PegTask(TaskConfig(str(ROOT / "robots" / "kuka_peg.urdf")), n_worlds=3)
+    free = PlantConfig(limits="off")  # pushed past the limits, to have speeds to take away
+    task = PegTask(TaskConfig(str(ROOT / "robots" / "kuka_peg.urdf"), plant=free), n_worlds=3)
     try:
         lay, dt = task.layout, task.config.world.dt
         g = torch.Generator().manual_seed(5)
@@ -57,7 +59,7 @@ def test_the_brake_takes_its_share_of_the_speeds_away_on_the_arm() -> None:
         def act(t: int, x: torch.Tensor, rows: slice) -> torch.Tensor:
             return push[rows, t] if t < 3 else -0.5 * task.model.stopping(x)
 
-        x, _, _ = task.sampler.rollout(act, [(0.0, 0.0)] * 3)
+        x = task.sampler.rollout(act, [(0.0, 0.0)] * 3).x
         before, after = x[:, 3], x[:, 4]
         q, qd = before[:, lay.q], before[:, lay.qd]
         batched = (task.model.urdf.mass_matrix(q) @ qd[..., None])[..., 0] / dt
@@ -83,7 +85,7 @@ def test_the_hover_brake_steers_the_peg_above_a_far_hole_in_pybullet() -> None:
         def steer(t: int, x: torch.Tensor, rows: slice) -> torch.Tensor:
             return -0.5 * task.model.stopping(x, hover)
 
-        x, _, _ = task.sampler.rollout(steer, [(0.0, 0.25), (-0.05, 0.1)])
+        x = task.sampler.rollout(steer, [(0.0, 0.25), (-0.05, 0.1)]).x
         start = (x[:, 0, lay.points] - raised).norm(dim=-1)
         end = (x[:, -1, lay.points] - raised).norm(dim=-1)
         assert (start > 0.2).all() and (end < 0.02).all()

@@ -20,12 +20,22 @@ from lolgps_torch.gym_env import (
     PegInsertionEnv,
     reach,
 )
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.task import TaskConfig
 
 
 @pytest.fixture(scope="module")
 def normalized() -> Iterator[gym.Env[np.ndarray, np.ndarray]]:
     env = gym.make(NORMALIZED_ENV_ID)
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def unlimited() -> Iterator[gym.Env[np.ndarray, np.ndarray]]:
+    """The normalised environment on an arm whose controller lets it pass its limits."""
+    config = TaskConfig(urdf=DEFAULT_URDF, plant=PlantConfig(limits="off"))
+    env = gym.make(NORMALIZED_ENV_ID, task_config=asdict(config))
     yield env
     env.close()
 
@@ -51,12 +61,32 @@ def test_normalized_env_passes_the_checker_without_warnings(
     assert np.array_equal(space.low, -np.ones(7)) and np.array_equal(space.high, np.ones(7))
 
 
-def test_rewards_are_the_task_costs_and_observations_stay_in_bounds(
+def test_full_effort_ends_the_episode_at_the_arms_limits(
     normalized: gym.Env[np.ndarray, np.ndarray],
 ) -> None:
-    """Bang-bang actions at full effort drive the joints to Bullet's speed clamp; every
-    observation stays in the space, and the rewards and final distance are the task's own
-    scoring of the same torques."""
+    """Bang-bang actions at full effort pass a joint's velocity limit: the arm's controller
+    stops the arm, and the episode ends, terminated, with the fault in its info and no
+    success."""
+    actions = np.random.default_rng(0).choice([-1.0, 1.0], size=(100, 7))
+    normalized.reset(options={"hole_offset": (0.01, -0.01)})
+    steps = 0
+    for a in actions:
+        obs, _, terminated, truncated, info = normalized.step(a)
+        steps += 1
+        assert normalized.observation_space.contains(obs)
+        if terminated:
+            break
+    assert terminated and not truncated and steps < 10
+    assert "velocity limit" in info["fault"] and not info["success"]
+
+
+def test_rewards_are_the_task_costs_and_observations_stay_in_bounds(
+    unlimited: gym.Env[np.ndarray, np.ndarray],
+) -> None:
+    """Without the arm's limits, bang-bang actions at full effort drive the joints to
+    Bullet's speed clamp; every observation stays in the space, and the rewards and final
+    distance are the task's own scoring of the same torques."""
+    normalized = unlimited
     env = normalized.unwrapped
     assert isinstance(env, PegInsertionEnv)
     rng = np.random.default_rng(0)

@@ -329,7 +329,9 @@ def _which_free(T: int, edit: Callable[[torch.Tensor, PegTask], None]) -> list[l
         edit(x, task)
         zeros = torch.zeros(3, T, dtype=torch.float64)
         u = torch.zeros(3, T, lay.dU, dtype=torch.float64)
-        samples = Trajectories(x[:, :-1], u, zeros, zeros[:, 0], zeros[:, 0] > 0, x[:, -1])
+        samples = Trajectories(
+            x[:, :-1], u, zeros, zeros[:, 0], zeros[:, 0] > 0, x[:, -1], zeros[:, 0] > 0
+        )
         return task.free_transitions(samples)[1].tolist()
     finally:
         task.close()

@@ -95,7 +95,7 @@ class _BlowingUp:
 
     model = SimpleNamespace(stopping=lambda x: x[..., LAYOUT.qd])  # the brake's model
 
-    def sample(self, actor: object, offsets: object) -> None:
+    def sample(self, actor: object, offsets: object, kind: str) -> None:
         raise NumericalError("the simulation blew up: joint speed 119 rad/s (bound 100)")
 
 

@@ -38,6 +38,9 @@ def worlds() -> Iterator[list[PegWorld]]:
 
 
 def _world(arm: ArmSpec, made: list[PegWorld], **plant: object) -> PegWorld:
+    """A world of the plant ``plant`` that lets the arm pass its limits (the tests here push
+    it hard to see the plant's other departures; tests/test_limits.py tests the limits)."""
+    plant = {"limits": "off", **plant}
     world = PegWorld(arm, WorldConfig(), FAR, plant=PlantConfig(**plant))  # type: ignore[arg-type]
     made.append(world)
     return world
@@ -190,7 +193,7 @@ def test_the_model_knows_the_delay(arm: ArmSpec, worlds: list[PegWorld]) -> None
     step changes the joint velocities as PyBullet does to 1 %, and the analytic linearisation
     is the autograd Jacobian."""
     config = WorldConfig(known_delay=0.06)
-    world = PegWorld(arm, config, FAR, plant=PlantConfig(action_delay=0.06))
+    world = PegWorld(arm, config, FAR, plant=PlantConfig(action_delay=0.06, limits="off"))
     worlds.append(world)
     layout, n = config.layout(arm.dof), arm.dof
     assert (layout.history, layout.dX) == (2, 4 * n + 12)

@@ -238,7 +238,7 @@ def _checked(
 
     def visits(policy, teachers, seed, label):  # type: ignore[no-untyped-def]
         assert [t.offset for t in teachers] == [(0.0, 0.0), (0.01, 0.0)]
-        return Visit(next(scripted), f"rows of {seed}" if label else None, 2)
+        return Visit(next(scripted), f"rows of {seed}" if label else None, 2, 0.0)
 
     sstep = CheckedSStep(distill, visits, 0.06, rounds > 0, rounds, repairs)  # type: ignore[arg-type]
     item = SimpleNamespace(offset=(0.01, 0.0), data=SimpleNamespace(x=torch.zeros(1, 2, 3)),
@@ -248,7 +248,7 @@ def _checked(
 
 def test_a_missed_condition_is_repaired_with_its_rows_twice() -> None:
     checked, distill, policy = _checked([[0.001, 0.2], [0.3, 0.2], [0.001, 0.001]], repairs=3)
-    assert checked == ([3.0], [0.001, 0.001], 2, None, 6)
+    assert checked == ([3.0], [0.001, 0.001], 2, None, 6, 0.0)
     # the first S-step in full; repairs from the best so far, a third of the steps, the missed
     # condition (place 1: the new one, after the replay's) emphasised
     steps = PolicyConfig().steps
@@ -346,7 +346,7 @@ def test_a_final_controller_that_misses_hands_d_g_to_the_newest_tried_one_that_s
     found = Successes()
     zeros, one_hit, no_hit = torch.zeros(2, 3), torch.tensor([True, False]), torch.zeros(2) > 0
     for i, name in enumerate(("it0", "it1", "none", "it2")):
-        samples = Trajectories(zeros, zeros, zeros, zeros[:, 0], no_hit if name == "none" else one_hit, zeros)  # fmt: skip
+        samples = Trajectories(zeros, zeros, zeros, zeros[:, 0], no_hit if name == "none" else one_hit, zeros, no_hit)  # fmt: skip
         found.add(samples, Labels(name, None, i))
     final = Labels("final", None, 5)
 

@@ -9,7 +9,7 @@ of ``metrics.jsonl``;
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal
 
 from lolgps_torch.errors import LolgpsError
@@ -69,13 +69,15 @@ class IdentifiedRecord:
 
 @dataclass(frozen=True)
 class DistillRecord:
-    """One S-step: after ``condition`` (the stream) or after ``iteration`` (batch GPS)."""
+    """One S-step: after ``condition`` (the stream) or after ``iteration`` (batch GPS), its
+    wall time (s) and, of it, the policy's rollouts' (its check and visits)."""
 
     condition: int
     time_distill: float
     distill_rows: int
     iteration: int | None = None
     repairs: int | None = None
+    time_visits: float | None = None
     event: Literal["distilled"] = "distilled"
 
     def to_json(self) -> dict[str, Any]:
@@ -105,6 +107,9 @@ class ConditionSummary:
     :param visited_rows: states the policy visited in the S-step that got a label.
     :param faults: rollouts drawn at the condition that the arm's controller stopped at a
         limit (counted as failures).
+    :param arm_rollouts: the rollouts run on the arm for the condition, by kind: ``sample``
+        (local learning), ``probe`` (noiseless checks of a controller or of the policy) and
+        ``visit`` (the policy's rollouts in the S-step); empty in runs that did not count them.
     """
 
     condition: int
@@ -124,6 +129,7 @@ class ConditionSummary:
     policy_rollouts: int = 0
     visited_rows: int = 0
     faults: int = 0
+    arm_rollouts: dict[str, int] = field(default_factory=dict)
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

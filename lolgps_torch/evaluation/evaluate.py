@@ -300,6 +300,7 @@ def evaluate_run(
         "training": {"conditions": [list(c) for c in info.conditions], "stages": info.stages},
         "groups": groups,
         "stages": stages,
+        "arm_rollouts": {"evaluation": sum(len(r.success) for r in results)},
         "metrics": _metrics(
             stages, evaluated, info, areas, _transfer(folder, info, scratch, workers)
         ),

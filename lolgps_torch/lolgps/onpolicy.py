@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import NamedTuple
@@ -87,11 +88,12 @@ def gated_rows(
 
 class Visit(NamedTuple):
     """One visit of the policy: its noiseless final distances (m) per teacher, the labelled
-    rows (None: none), and the rollouts it took."""
+    rows (None: none), the rollouts it took and its wall time (s)."""
 
     distances: list[float]
     visited: VisitedRows | None
     rollouts: int
+    seconds: float
 
 
 class PolicyVisits:
@@ -117,6 +119,7 @@ class PolicyVisits:
         ``label``) ``noisy`` noisy ones at each, their states labelled by their own position's
         teacher. A policy that blows the simulation up misses everywhere (distance inf) and
         gives no rows."""
+        t0 = time.perf_counter()
         C, T, dU = len(teachers), self.task.T, self.task.layout.dU
         noisy = self.noisy if label else 0
         offsets = [teacher.offset for teacher in teachers] * (1 + noisy)
@@ -125,10 +128,10 @@ class PolicyVisits:
         noise = torch.cat([noise.new_zeros(C, T, dU), noise]).to(self.task.device)
         try:
             runs: Trajectories = self.task.sample(
-                policy_actor(policy, self.task.model.stopping, noise), offsets
+                policy_actor(policy, self.task.model.stopping, noise), offsets, "visit"
             )
         except NumericalError:
-            return Visit([math.inf] * C, None, len(offsets))
+            return Visit([math.inf] * C, None, len(offsets), time.perf_counter() - t0)
         parts = [
             gated_rows(
                 runs.x[c::C], teacher, teacher.labels, self.task.layout, self.gate, self.floor
@@ -137,19 +140,22 @@ class PolicyVisits:
             if label and teacher.labels is not None and teacher.samples > 0
         ]
         visited = VisitedRows.cat(parts) if parts else None
-        return Visit(runs.scored_distance[:C].tolist(), visited, len(offsets))
+        distances = runs.scored_distance[:C].tolist()
+        return Visit(distances, visited, len(offsets), time.perf_counter() - t0)
 
 
 class Checked(NamedTuple):
     """A checked S-step: the kept round's losses, the kept policy's final distances (m) at
     every position learnt so far (NaN while untrained), the rounds run after the first fit,
-    the labelled states the policy visited (None: none) and the policy rollouts taken."""
+    the labelled states the policy visited (None: none), the policy rollouts taken and their
+    wall time (s)."""
 
     losses: list[float]
     distances: list[float]
     rounds: int
     visited: VisitedRows | None
     rollouts: int
+    visit_seconds: float = 0.0
 
 
 class CheckedSStep:
@@ -206,7 +212,7 @@ class CheckedSStep:
         if not policy.trained:
             return Checked(losses, [float("nan")] * len(teachers), 0, None, 0)
         seen = self.visits(policy, teachers, seed, self.label)
-        parts, rollouts = [seen.visited], seen.rollouts
+        parts, rollouts, seconds = [seen.visited], seen.rollouts, seen.seconds
         best = Checked(losses, seen.distances, 0, None, 0)
         state = copy.deepcopy(policy.state_dict())
         refit = replace(self.distill.config, steps=max(1, self.distill.config.steps // 3))
@@ -223,13 +229,16 @@ class CheckedSStep:
             seen = self.visits(policy, teachers, round_seed, self.label)
             parts.append(seen.visited)
             rollouts += seen.rollouts
+            seconds += seen.seconds
             if self.score(seen.distances) > self.score(best.distances):
                 best, state = (
                     best._replace(losses=losses, distances=seen.distances),
                     copy.deepcopy(policy.state_dict()),
                 )
         policy.load_state_dict(state)
-        return best._replace(rounds=rounds, visited=_joined(parts), rollouts=rollouts)
+        return best._replace(
+            rounds=rounds, visited=_joined(parts), rollouts=rollouts, visit_seconds=seconds
+        )
 
     def score(self, distances: list[float]) -> tuple[int, float]:
         """Positions reached, then minus the total distance: the larger the better."""

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple, get_args
@@ -51,7 +52,7 @@ from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits
 from lolgps_torch.lolgps.plans import PlannedStarts
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
-from lolgps_torch.task import PegTask
+from lolgps_torch.task import ROLLOUT_KINDS, PegTask
 from lolgps_torch.types import LinearGaussian, Trajectories
 
 AlphaSchedule = Literal["constant", "dynamic"]
@@ -208,6 +209,7 @@ class StreamLearner:
         returns its summary entry. The first controller at the ``upcoming`` condition's offset
         is planned during the S-step where a rollout worker is idle (:class:`PlannedStarts`)."""
         cfg, seed = self.config, condition_seed(self.config, index)
+        counted = Counter(self.task.arm_rollouts)
         learner = LocalLearner(
             self.task, offset, cfg.local, seed, self.log, index, self.starts.plan
         )
@@ -222,7 +224,10 @@ class StreamLearner:
         checked = self.sstep(self.policy, Labelled(offset, data, labels), seed)
         losses, after, repairs = checked.losses, checked.distances[-1], checked.rounds
         rows = int(data.x.shape[0]) * self.task.T
-        self.log(DistillRecord(index, time.perf_counter() - t0, rows, repairs=repairs))
+        seconds = time.perf_counter() - t0
+        self.log(
+            DistillRecord(index, seconds, rows, repairs=repairs, time_visits=checked.visit_seconds)
+        )
         entry = ConditionSummary(
             condition=index,
             offset=list(offset),
@@ -241,6 +246,7 @@ class StreamLearner:
             policy_rollouts=checked.rollouts,
             visited_rows=0 if checked.visited is None else checked.visited.R,
             faults=outcome.faults,
+            arm_rollouts={k: self.task.arm_rollouts[k] - counted[k] for k in ROLLOUT_KINDS},
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
@@ -386,7 +392,7 @@ def condition_seed(config: StreamConfig, index: int) -> int:
 def noiseless_distance(task: PegTask, p: LinearGaussian, offset: tuple[float, float]) -> float:
     """Final distance (m) of the controller ``p``'s noiseless rollout at ``offset``."""
     zero = torch.zeros(1, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
-    return float(task.sample(linear_gaussian_actor(p, zero), [offset]).scored_distance[0])
+    return float(task.sample(linear_gaussian_actor(p, zero), [offset], "probe").scored_distance[0])
 
 
 def policy_distances(
@@ -398,7 +404,7 @@ def policy_distances(
         return [float("nan")] * len(offsets)
     try:
         return task.sample(
-            policy_actor(policy, task.model.stopping), offsets
+            policy_actor(policy, task.model.stopping), offsets, "probe"
         ).scored_distance.tolist()
     except NumericalError:
         return [math.inf] * len(offsets)

@@ -18,7 +18,10 @@ damping and the physics substeps). Each hypothesis leaves the residual
 compensation is missing where ``RSS(0)`` is :data:`MARGIN` times smaller than ``RSS(1)``,
 present where ``RSS(1)`` is; otherwise (an arm that barely moves under gravity at q0, or one
 compensated in part) the probe is inconclusive and the arm is taken as compensated.
-Commands of zero leave any command delay without effect.
+Commands of zero leave any command delay without effect. A rollout the arm's controller stops
+(a joint past its velocity limit: an arm that falls fast) gives the steps before it alone; an
+arm stopped within the first step of every rollout fell faster than any joint may move, and is
+taken as not compensated.
 """
 
 from __future__ import annotations
@@ -70,28 +73,36 @@ class GravityEstimate(NamedTuple):
     rss_compensated: float
 
 
-def let_go(world: World, q0: np.ndarray, config: GravityConfig) -> np.ndarray:
-    """The observed states ``[R, S+1, dX]`` of the probe's rollouts (module docstring) in
-    ``world``, which must have its hole set."""
+def let_go(world: World, q0: np.ndarray, config: GravityConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The observed transitions of the probe's rollouts (module docstring) in ``world``, which
+    must have its hole set: the states before and after each step, ``([K, dX], [K, dX])``,
+    each rollout's up to the step in which the arm's controller stopped it, if any."""
     zero = np.zeros(world.arm.dof)
-    rollouts = []
+    before, after = [], []
     for r in range(config.rollouts):
-        states = [world.reset(q0, key=(r,))]
-        states += [world.step(zero) for _ in range(config.steps)]
-        rollouts.append(np.stack(states))
-    return np.stack(rollouts)
+        x = world.reset(q0, key=(r,))
+        for _ in range(config.steps):
+            nxt = world.step(zero)
+            if world.fault is not None:
+                break
+            before.append(x)
+            after.append(nxt)
+            x = nxt
+    width = len(world.reset(q0))
+    return np.reshape(before, (-1, width)), np.reshape(after, (-1, width))
 
 
 def estimate_gravity(
-    states: np.ndarray, arm: ArmSpec, config: WorldConfig, inertia: np.ndarray
+    moves: tuple[np.ndarray, np.ndarray], arm: ArmSpec, config: WorldConfig, inertia: np.ndarray
 ) -> GravityEstimate:
-    """The verdict of the module docstring on the states ``[R, S+1, dX]`` of :func:`let_go`
-    in a world of ``config`` with ``arm``, from the learner's model of the arm and the joints'
+    """The verdict of the module docstring on the transitions ``moves`` of :func:`let_go` in
+    a world of ``config`` with ``arm``, from the learner's model of the arm and the joints'
     effective inertias ``inertia: [n]``."""
+    if len(moves[0]) == 0:  # stopped within its first step, every time: it falls fast
+        return GravityEstimate(False, True, 0.0, float("inf"))
     compensated = ControlStep(arm, config)
     falling = ControlStep(arm, config, identified=(compensated.urdf, 0.0, 0.0))
-    x = torch.from_numpy(states)
-    before, after = x[:, :-1], x[:, 1:]
+    before, after = (torch.from_numpy(states) for states in moves)
     u = torch.zeros(*before.shape[:-1], arm.dof, dtype=torch.float64)
     qd = compensated.layout.qd
     scale = torch.as_tensor(inertia, dtype=torch.float64) / config.dt

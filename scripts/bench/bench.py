@@ -32,10 +32,13 @@
 Medians over the repeats; the machine is noisy, so compare ratios, not seconds.
 
 ``--runs`` measures nothing: it prints one markdown row per finished run folder, the final
-policy's successes at the training positions (summary.json), the wall seconds metrics.jsonl
-records for sampling, dynamics fits, C-steps (with the plans on the model) and S-steps (with
-their closed-loop checks and repair rounds), the repair rounds, and the S-steps' time over
-the sampling time.
+policy's successes at the training positions (summary.json), the run's wall seconds
+(metrics.jsonl's last line), the seconds metrics.jsonl records for sampling, dynamics fits, C-steps (with
+the plans on the model), the S-steps' fits (with their repair rounds) and the S-steps' policy
+rollouts (the checks and visits), the rest of the wall time (start-up: imports of the script
+aside, the placement, the probes before the stream, the worker processes), the rollouts on
+the arm by kind (summary.json's ``arm_rollouts``; "-" for runs made before they were
+counted), and the repair rounds.
 """
 
 from __future__ import annotations
@@ -296,27 +299,32 @@ def bench_model_prior(task: PegTask, repeats: int) -> dict[str, float]:
 
 def stream_times(paths: list[str]) -> None:
     """Print the ``--runs`` table (module docstring)."""
-    phases = tuple(PARTS.values())
+    kinds = ("start", "sample", "probe", "visit", "total")
     print(
-        "| run | final | sampling s | fits s | C-steps s | S-steps s | repair rounds "
-        "| S-steps / sampling |"
+        "| run | final | wall s | sampling s | fits s | C-steps s | S-step fits s | visits s | "
+        "start-up and the rest s | arm rollouts: " + " / ".join(kinds) + " | repair rounds |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---" * 11 + "|")
     for path in paths:
         folder = RunFolder(path)
-        sums = dict.fromkeys(phases, 0.0)
-        repairs = 0
+        sums = dict.fromkeys((*PARTS.values(), "time_visits"), 0.0)
+        repairs, wall = 0, float("nan")
         for record in folder.read_metrics():
-            for phase in phases:
-                sums[phase] += float(record.get(phase, 0.0))
+            if record.get("event") == "finished":
+                wall = float(record["seconds"])
+            for phase in sums:
+                sums[phase] += float(record.get(phase) or 0.0)
             repairs += int(record.get("repairs") or 0)
-        entries = folder.read_summary()["conditions"]
+        summary = folder.read_summary()
+        entries = summary["conditions"]
         final = sum(bool(e["policy_success_end"]) for e in entries)
-        times = " | ".join(f"{sums[p]:.1f}" for p in phases)
-        ratio = sums["time_distill"] / sums["time_sample"] if sums["time_sample"] else float("nan")
-        print(
-            f"| {folder.path.name} | {final}/{len(entries)} | {times} | {repairs} | {ratio:.2f} |"
-        )
+        fits = sums["time_distill"] - sums["time_visits"]
+        parts = [sums["time_sample"], sums["time_fit"], sums["time_cstep"], fits]
+        rest = wall - sum(parts) - sums["time_visits"]
+        counted = summary.get("arm_rollouts", {})
+        rollouts = " / ".join(str(counted[k]) if k in counted else "-" for k in kinds)
+        times = " | ".join(f"{v:.1f}" for v in (wall, *parts, sums["time_visits"], rest))
+        print(f"| {folder.path.name} | {final}/{len(entries)} | {times} | {rollouts} | {repairs} |")
 
 
 BENCHES = {
