@@ -184,7 +184,8 @@ def test_a_ci_sized_run_learns_one_condition_within_the_limits(
     exploring sample may fault: a peg pressed onto the table beside the hole can slip faster
     than a joint may move, and the reflex stops it, as on a real arm."""
     out = tmp_path / "run"
-    result = run_script("scripts/run_stream.py", *_one_condition(tmp_path, "--out", str(out)))
+    flags = ("--distill-steps", "1000", "--out", str(out))  # a policy fitted as by default
+    result = run_script("scripts/run_stream.py", *_one_condition(tmp_path, *flags))
     assert result.code == 0, result.err
     (entry,) = json.loads((out / "summary.json").read_text())["conditions"]
     assert entry["local_success"] and entry["policy_success_after"]
