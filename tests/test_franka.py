@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -27,19 +28,16 @@ def _unshare_works() -> bool:
 
 
 _missing = [m for m in ("pylibfranka", "franky_sim") if importlib.util.find_spec(m) is None]
-pytestmark = [
-    pytest.mark.skipif(
-        bool(_missing), reason=f"not installed: {_missing} (pip install -e '.[franka]' franky-sim)"
-    ),
-    pytest.mark.skipif(
-        not _missing and not _unshare_works(), reason="unshare -n is not permitted here"
-    ),
-]
 
 
 @pytest.fixture
 def fr3(tmp_path: Path) -> Path:
-    """franky-sim's FR3 MJCF, its meshes named where they are installed."""
+    """franky-sim's FR3 MJCF, its meshes named where they are installed; the test skipped
+    where the stand-in cannot run."""
+    if _missing:
+        pytest.skip(f"not installed: {_missing} (pip install -e '.[franka]' franky-sim)")
+    if not _unshare_works():
+        pytest.skip("unshare -n is not permitted here")
     spec = importlib.util.find_spec("franky_sim")
     assert spec is not None and spec.origin is not None
     assets = Path(spec.origin).parent / "assets"
@@ -199,18 +197,53 @@ def run_stream(fr3: Path, out: Path, conditions: list[list[float]], *extra: str)
     ]  # fmt: skip
 
 
-def test_learns_one_condition(fr3: Path, tmp_path: Path) -> None:
-    """One condition in free space, two iterations of two rollouts: the peg tip ends within
-    the success threshold of the hole's floor point, with no fault."""
+def test_learns_one_condition_then_evaluates_on_the_arm(fr3: Path, tmp_path: Path) -> None:
+    """One condition in free space, learnt on the arm from two rollouts an iteration: the peg
+    tip ends within the success threshold of the hole's floor point, with no fault; then
+    evaluate.py runs the policy on the arm at that position."""
     out = tmp_path / "run"
     command = run_stream(fr3, out, [[0.0, 0.0]], "--samples", "2", "--max-iterations", "2",
                          "--success-phases", "1", "--repairs", "0")  # fmt: skip
-    output = in_namespace(*command)
+    positions = tmp_path / "positions.json"
+    positions.write_text("[[0.0, 0.0]]")
+    evaluate = [sys.executable, "scripts/evaluate.py", "--run", str(out), "--positions",
+                str(positions), "--arm", "franka", "--robot-ip", "127.0.0.1", "--yes"]  # fmt: skip
+    both = f"{shlex.join(command)} && {shlex.join(evaluate)}"
+    output = in_namespace("sh", "-c", both)
     summary = json.loads((out / "summary.json").read_text())
     (entry,) = summary["conditions"]
     assert entry["local_final_distance"] < 0.06, output
     assert "the arm stopped" not in output
     assert "rollout 1 on the arm" in output
+    evaluation = json.loads((out / "eval.json").read_text())
+    (stage,) = evaluation["stages"]
+    assert stage["groups"][0]["success_rate"]["mean"] == 1.0, output
+    assert stage["faults"] == 0
+
+
+@pytest.mark.parametrize(
+    ("script", "flags", "message"),
+    [
+        ("run_stream.py", ["--arm", "franka"], "--arm franka needs --robot-ip"),
+        (
+            "evaluate.py",
+            ["--run", "x", "--arm", "franka", "--robot-ip", "10.0.0.2", "--ray"],
+            "--ray runs rollouts on Ray actors",
+        ),  # fmt: skip
+        (
+            "run_stream.py",
+            ["--arm", "franka", "--robot-ip", "10.0.0.2", "--deadline", "0"],
+            "--deadline must be positive",
+        ),  # fmt: skip
+    ],
+)
+def test_arm_flags_refused_in_one_line(script: str, flags: list[str], message: str) -> None:
+    """Bad arm flags: one error line, exit status 2, before any arm is reached."""
+    result = subprocess.run(
+        [sys.executable, f"scripts/{script}", *flags], capture_output=True, text=True, cwd=REPO
+    )
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines()[-1].startswith(f"error: {message}")
 
 
 def missed_share(output: str) -> float:

@@ -333,10 +333,14 @@ class _Loop:
         self.state = self._read()
 
 
-def _serve(conn: multiprocessing.connection.Connection, config: RealArmConfig,
+def _serve(conn: multiprocessing.connection.Connection,
+           learners: multiprocessing.connection.Connection, config: RealArmConfig,
            effort: np.ndarray) -> None:  # fmt: skip
-    """The arm's process: connect, say so (or why not), then serve the learner.  Ctrl-C is
-    the learner's to handle: the loop ends its motion when the learner closes it or is gone."""
+    """The arm's process: connect, say so (or why not), then serve the learner on ``conn``.
+    The learner's end, ``learners``, is closed here at once, so that the pipe ends when the
+    learner is gone.  Ctrl-C is the learner's to handle: the loop ends its motion when the
+    learner closes it or is gone."""
+    learners.close()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         loop = _Loop(conn, config, effort)
@@ -363,7 +367,7 @@ class FrankaArm:
         context = multiprocessing.get_context("fork")  # the loop's process imports no torch
         self._conn, theirs = context.Pipe()
         self._process = context.Process(
-            target=_serve, args=(theirs, config, np.asarray(effort)), daemon=True
+            target=_serve, args=(theirs, self._conn, config, np.asarray(effort)), daemon=True
         )
         self._process.start()
         theirs.close()
