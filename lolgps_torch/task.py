@@ -44,8 +44,9 @@ from lolgps_torch.robot.placement import (
 )
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.arm_world import ArmSampler
 from lolgps_torch.sim.engines import build_world, engine_errors
-from lolgps_torch.sim.franka import SIMULATED, ArmSampler, RealArmConfig
+from lolgps_torch.sim.franka import SIMULATED, RealArmConfig
 from lolgps_torch.sim.gravity import GravityConfig, GravityEstimate, estimate_gravity, let_go
 from lolgps_torch.sim.latency import DelayConfig, DelayEstimate, estimate_delay, excite
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
