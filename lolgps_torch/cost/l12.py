@@ -69,7 +69,7 @@ class CostConfig:
     descent_height: float = 0.2
     descent_steps: int = 40
     speed_weight: float = 10.0
-    speed_free: float = 0.5
+    speed_free: float = 0.3
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.speed_weight) and self.speed_weight >= 0.0):
