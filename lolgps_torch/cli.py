@@ -320,7 +320,7 @@ def allow_for_delay(
     """The task and local learner allowing for a command delay of ``seconds``: the known delay
     (the state carries the last actions, the model acts on each command late), and from half a
     control step on the hold as the first controller (``--model-plans 0``: a controller
-    planned on the model shakes in contact 40 or 50 ms late, docs/RESULTS.md section 8)."""
+    planned on the model shakes in contact 40 or 50 ms late, docs/RESULTS.md at c902895, section 8)."""
     task = dataclasses.replace(task, world=dataclasses.replace(task.world, known_delay=seconds))
     if seconds >= task.world.dt / 2:
         local = dataclasses.replace(local, model_plans=0)

@@ -90,7 +90,7 @@ def test_a_stream_with_late_commands_finds_the_delay_and_learns(tmp_path: Path) 
     """Commands 50 ms late, nothing said to the learner: the run detects the delay, records it,
     allows for it (the last action in the state, the hold as the first controller), and its
     local controller closes most of the way to the hole in 5 iterations (with the planned
-    start and no known delay it ends 0.9-1.8 m away, docs/RESULTS.md section 8)."""
+    start and no known delay it ends 0.9-1.8 m away, docs/RESULTS.md at c902895, section 8)."""
     conditions = tmp_path / "conditions.json"
     conditions.write_text(json.dumps([[0.0, 0.0]]))
     out, log = tmp_path / "run", tmp_path / "run.log"

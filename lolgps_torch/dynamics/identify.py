@@ -93,7 +93,7 @@ in, which ``c(q_0)`` takes as the current.
 
 A delay the learner does not know (no action history in the state: ``--no-detect-delay``, or
 a delay the stream's estimate misses) leaves u_t held over the whole step, and the fit puts
-the delayed response into θ: κ and the payload come out wrong (docs/RESULTS.md section 8).
+the delayed response into θ: κ and the payload come out wrong (docs/RESULTS.md at c902895, section 8).
 
 σ (``speed_noise`` or ``torque_noise``) starts the same for every joint; the MAP estimate is
 then solved again with each joint's σ_j its residuals' robust scale, ``1.4826 median_t |r_tj|``

@@ -71,7 +71,7 @@ class LocalConfig:
         (:func:`planned_controller`; 0: the first iteration samples the hold controller), with
         either dynamics prior: with the GMM prior too the teachers then follow the cost's
         descent over the mouth within mm, where from the hold they came down 10-50 mm beside
-        it and the global policy lost positions under a payload (docs/RESULTS.md section 8).
+        it and the global policy lost positions under a payload (docs/RESULTS.md at c902895, section 8).
     :param identify: with the model prior, identify the arm's physical parameters from the
         free-space transitions of the rollouts so far before learning each condition
         (:mod:`lolgps_torch.dynamics.identify`): the planned start and the model prior then

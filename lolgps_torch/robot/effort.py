@@ -19,7 +19,7 @@ own rigid-body model (:mod:`.rigid_body`), at standard gravity:
 * ``EFFORT_MARGIN = 3``: among the published arms that give their limits, ``effort / G`` at
   the shoulder (the most loaded joint) is 1.6 to 2.9 on the Panda, xArm 6, UR3e and UR5e and
   5.4 to 18.5 on the KUKA iiwa and the Trossen arms; the smallest ``effort / I`` of each is 14
-  to 349 rad/s^2, and ``3 g / reach`` on them 22 to 38 (docs/RESULTS.md section 10.1).  A
+  to 349 rad/s^2, and ``3 g / reach`` on them 22 to 38 (docs/RESULTS.md at c902895, section 10.1).  A
   margin of 3 leaves twice the worst gravity load for motion, between the two groups.
 
 Both terms scale with the arm (torques as mass times length times g), so no arm needs a

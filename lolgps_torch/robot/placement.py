@@ -85,7 +85,7 @@ class PlacementConfig:
         cannot move the peg in some direction.  On a published UR5 the five positions that
         could not be followed from the start pose (4-24 mm short, dexterity at most 0.0075)
         were the five whose local controller or policy ended 17-105 mm from the target; the
-        positions that learnt had 0.014-0.037 (docs/RESULTS.md section 15).
+        positions that learnt had 0.014-0.037 (docs/RESULTS.md at c902895, section 15).
     """
 
     reach_fraction: float = 0.55
