@@ -55,13 +55,16 @@ def test_kuka_learns_the_nominal_hole(tmp_path: Path) -> None:
 
 def test_train_condition_sets_the_step_multiplier(tmp_path: Path) -> None:
     """--step-mult-init and --step-mult-max reach the C-step: epsilon = kl_step * step_mult * T
-    = 1 * 3 * 100 on the first iteration, and the run's config records both."""
+    = 1 * 3 * 100 on the first iteration (from the hold, whose samples always get a C-step),
+    and the run's config records both."""
     records = _train(
         tmp_path,
         "--urdf",
         "robots/kuka_peg.urdf",
         "--iterations",
         "1",
+        "--model-plans",
+        "0",
         "--step-mult-init",
         "3",
         "--step-mult-max",
