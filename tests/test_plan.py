@@ -18,6 +18,7 @@ from lolgps_torch.errors import NumericalError
 from lolgps_torch.lolgps import local
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
 from lolgps_torch.robot.validate import ArmWarning
+from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.simulator import WorldConfig
 from lolgps_torch.task import PegTask, TaskConfig
 from lolgps_torch.trajopt import CStepConfig, plan_on_model
@@ -26,6 +27,8 @@ from tests.test_cstep import random_problem, riccati
 from tests.test_published import PUBLISHED
 
 DT = torch.float64
+
+UNLIMITED = PlantConfig(limits="off")  # an arm whose controller lets it pass its limits
 
 
 Step = Callable[[int, Tensor, Tensor], Tensor]  # (t, x, u) -> x'
@@ -173,7 +176,9 @@ def test_the_model_prior_plans_a_first_controller_that_inserts_the_peg() -> None
     assert not bool(held.success.any())
     assert int(first.success.sum()) >= 3
     assert 0.5 * hold.start_cost < planned.start_cost < hold.start_cost
-    assert float(first.cost.sum(1).max()) < 0.1 * planned.start_cost
+    # 3 of 5 samples at least cost a tenth of holding still (an exploring one may be stopped at
+    # a limit, or, without the reflex, flung, its speed cost then large)
+    assert int((first.cost.sum(1) < 0.1 * planned.start_cost).sum()) >= 3
     assert 0.0 < planned.plan_time <= record.time_cstep  # the plan is logged as C-step time
 
 
@@ -185,7 +190,7 @@ def test_the_planned_first_controller_inserts_the_peg_on_published_arms(name: st
     urdf, _, ee_link = PUBLISHED[name]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ArmWarning)
-        task = PegTask(TaskConfig(urdf=str(urdf), ee_link=ee_link), n_worlds=5)
+        task = PegTask(TaskConfig(urdf=str(urdf), ee_link=ee_link, plant=UNLIMITED), n_worlds=5)
     try:
         learner = LocalLearner(task, (0.015, -0.01), LocalConfig(), seed=4)
         samples, _, _ = iterate(learner, learner.p_cur, None, False, (0, 0, 0.0))
@@ -221,7 +226,10 @@ def test_a_planned_start_worse_than_holding_still_is_dropped_for_the_hold() -> N
     them, and the hold acts next, its samples measuring the start cost; from there the
     condition is learnt."""
     task = PegTask(
-        TaskConfig(urdf="robots/kuka_peg.urdf", world=WorldConfig(known_delay=0.01)), n_worlds=5
+        TaskConfig(
+            urdf="robots/kuka_peg.urdf", world=WorldConfig(known_delay=0.01), plant=UNLIMITED
+        ),
+        n_worlds=5,
     )
     try:
         learner = LocalLearner(task, (-0.02, -0.02), LocalConfig(), seed=0)

@@ -58,6 +58,7 @@ def test_sac_smoke_run_writes_result_and_figure(
     (gps / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     out = tmp_path / "sac"
     args = ["--steps", "200", "--gps", str(gps), "--out", str(out), "--every", "1"]
+    args += ["--limits", "off"]  # random full-effort torques pass the limits at once
     assert run_script(args, monkeypatch) == 0
     result = json.loads((out / "result.json").read_text())
     assert result["steps"] == 200 and result["rollouts"] == 2

@@ -24,6 +24,7 @@ import importlib.util
 import json
 import math
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, cast
 
@@ -35,6 +36,8 @@ from lolgps_torch.cli import run
 from lolgps_torch.data.run_folder import RunFolder, read_json, write_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.gym_env import DEFAULT_URDF, NORMALIZED_ENV_ID, PegInsertionEnv
+from lolgps_torch.sim.plant import PlantConfig
+from lolgps_torch.task import TaskConfig
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -55,6 +58,13 @@ def parse_args() -> argparse.Namespace:
         "--wall-minutes", type=float, default=None, help="stop after this much wall time"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--limits",
+        choices=("reflex", "off"),
+        default="reflex",
+        help="the arm's controller stops an episode where a joint passes a limit, or lets it "
+        "go on (default: reflex)",
+    )
     parser.add_argument("--gps", default=None, help="train_condition.py output folder to compare")
     parser.add_argument("--gps-samples", type=int, default=5, help="rollouts per GPS iteration")
     parser.add_argument("--out", required=True, help="output folder")
@@ -198,7 +208,8 @@ def main() -> None:
     if args.gps and not Path(args.gps).is_dir():
         raise LolgpsError(f"--gps {args.gps}: no such folder")
     hole = (args.hole[0], args.hole[1])
-    env = gym.make(NORMALIZED_ENV_ID, urdf=args.urdf, hole_offset=hole)
+    config = TaskConfig(urdf=args.urdf, plant=PlantConfig(limits=args.limits))
+    env = gym.make(NORMALIZED_ENV_ID, task_config=asdict(config), hole_offset=hole)
     task = cast(PegInsertionEnv, env.unwrapped).task
     task.check_reachable(hole)
     start_wall, start_cpu = time.perf_counter(), time.process_time()
