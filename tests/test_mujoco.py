@@ -239,6 +239,7 @@ def test_ci_stream_learns_in_mujoco(tmp_path: Path, run_script: Callable[..., Sc
     out = tmp_path / "run"
     result = run_script("scripts/run_stream.py", "--urdf", ARMS["kuka"], "--sim", "mujoco",
                         "--conditions", str(conditions), *SMALL, "--workers", "1",
+                        "--distill-steps", "1000",  # a policy fitted as by default
                         "--out", str(out))  # fmt: skip
     assert result.code == 0, result.err[-2000:]
     assert json.loads((out / "config.json").read_text())["task"]["sim"] == "mujoco"
