@@ -24,7 +24,8 @@ from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.engines import build_world
 from lolgps_torch.sim.plant import PlantConfig
-from lolgps_torch.sim.simulator import POSITION_MARGIN, Reflex, World
+from lolgps_torch.sim.reflex import POSITION_MARGIN, Reflex
+from lolgps_torch.sim.simulator import World
 from lolgps_torch.task import PegTask, TaskConfig, load_task_arm
 
 KUKA = str(ROOT / "robots" / "kuka_peg.urdf")

@@ -40,7 +40,7 @@ class ArmWorld(World):
     control step (``substeps`` 1), commanding the arm for ``dt``, the command held; the world's
     gravity compensation is the learner's model's (the arm adds its own: it only bounds the
     command within the effort limits); the arm's own reflexes, and the learner's
-    (:class:`~lolgps_torch.sim.simulator.Reflex`, with ``--limits reflex``), end a rollout
+    (:class:`~lolgps_torch.sim.reflex.Reflex`, with ``--limits reflex``), end a rollout
     as a fault.
 
     :param real: the arm's settings. :param device: the arm, connected (:func:`connect`).

@@ -7,7 +7,7 @@ are dropped (PyBullet's world drops them too), and so are the collision shapes o
 but the peg's, since only the peg touches the world; every link stays a body of its own, so
 the peg and point frames keep their names.  Everything else is made to match PyBullet's world:
 
-- the same table and funnel boxes (:func:`~lolgps_torch.sim.simulator.hole_boxes`) on a mocap
+- the same table and funnel boxes (:func:`~lolgps_torch.sim.geometry.hole_boxes`) on a mocap
   body moved to the condition's position;
 - friction: PyBullet multiplies the hole's coefficient (``--friction``) by the peg link's own
   (0.5 unless its URDF says otherwise), MuJoCo takes the larger of the two geoms'; both get
@@ -42,15 +42,10 @@ from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError, NumericalError
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.geometry import damping_inertias, hole_boxes
 from lolgps_torch.sim.mujoco_compat import mass_matrix, same_contact
 from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig
-from lolgps_torch.sim.simulator import (
-    World,
-    WorldConfig,
-    check_plant,
-    damping_inertias,
-    hole_boxes,
-)
+from lolgps_torch.sim.simulator import World, WorldConfig, check_plant
 
 PYBULLET_LINK_FRICTION = 0.5  # a URDF link's lateral friction in PyBullet unless it sets one
 LINK_DAMPING = 0.04  # btMultiBody's linear and angular link damping (sim/model.py)
@@ -211,7 +206,7 @@ class MujocoWorld(World):
 
     def _stabilise_damping(self, joints: list[int]) -> None:
         """Raise the principal inertias of a joint's child body where PyBullet's world does
-        (:func:`~lolgps_torch.sim.simulator.damping_inertias`), so that both engines simulate
+        (:func:`~lolgps_torch.sim.geometry.damping_inertias`), so that both engines simulate
         the arm the model describes."""
         m = self.model
         M = self._mass_matrix(np.zeros(self.arm.dof))

@@ -18,7 +18,7 @@ does with it, so the learner never reads them. With the defaults the plant is th
   physics steps (``dt / substeps``); before the first command acts the arm gets ``u = 0``.
 - Limits: as a real arm's controller does, the world stops the arm where a joint passes its
   velocity limit or comes near a position limit, and the rollout ends as a fault
-  (:class:`~lolgps_torch.sim.simulator.Reflex`); ``off``: the arm moves on past them.
+  (:class:`~lolgps_torch.sim.reflex.Reflex`); ``off``: the arm moves on past them.
 """
 
 from __future__ import annotations

@@ -10,12 +10,12 @@ world, whichever engine steps it (``TaskConfig.sim``: ``pybullet``, the default,
   noise, the effort limits), and an engine supplies a few primitives: move the hole, set the
   joints, read them, the point frame's pose, the gravity compensation and one physics step.
 - :class:`Display`: a world posed from recorded joint angles and photographed, for videos.
-- :func:`build_world`, :func:`build_display` and :func:`engine_errors` pick the engine by
-  name; each engine's module is imported only when it is asked for.
+- :func:`~lolgps_torch.sim.engines.build_world`, :func:`~lolgps_torch.sim.engines.build_display`
+  and :func:`~lolgps_torch.sim.engines.engine_errors` pick the engine by name; each engine's
+  module is imported only when it is asked for.
 
-The geometry both engines build is described once here: :func:`hole_boxes` (the table and
-the tilted-plate funnel) and :func:`damping_inertias` (where rotor-like inertia is added
-because joint damping would be unstable).
+The geometry both engines build is described once in :mod:`lolgps_torch.sim.geometry`, the
+reflex that stops the arm at its limits in :mod:`lolgps_torch.sim.reflex`.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from lolgps_torch.sim.plant import (
     VELOCITY_NOISE_RATIO,
     PlantConfig,
 )
+from lolgps_torch.sim.reflex import Reflex
 from lolgps_torch.state import StateLayout
 
 Simulator = Literal["pybullet", "mujoco"]
@@ -137,96 +138,6 @@ class WorldConfig:
         return StateLayout(dof, self.history)
 
 
-class Box(NamedTuple):
-    """One box of the hole, in the hole's frame (the mouth's centre): half extents (m), and a
-    pose ``Rz(yaw) (Ry(tilt) x + centre)``: turned by ``tilt`` about y, moved to ``centre``,
-    then the whole turned by ``yaw`` about the hole's vertical axis.  ``yaw`` None: the box
-    is not turned at all (the floor, which PyBullet places without composing transforms,
-    as those round to single precision)."""
-
-    half_extents: list[float]
-    centre: list[float]
-    yaw: float | None
-    tilt: float
-
-
-def hole_boxes(peg_radius: float, config: WorldConfig) -> list[Box]:
-    """The table slab with a square opening and the funnel under it, as boxes: four guide
-    plates tilted so the clearance per side narrows from ``clearance_mouth`` at the table
-    surface to ``clearance_bottom`` at the floor, ``depth`` below; a pinwheel of four slabs
-    around the opening; the floor."""
-    a_top = peg_radius + config.clearance_mouth
-    a_bot = peg_radius + config.clearance_bottom
-    h, D, W = config.plate_thickness / 2, config.depth, config.table_half_size
-    norm = math.hypot(D, a_bot - a_top)
-    nx, nz = D / norm, (a_bot - a_top) / norm  # outward normal of the +x plate's face
-    face_mid = np.array([(a_top + a_bot) / 2, 0.0, -D / 2])
-    centre = (face_mid + h * np.array([nx, 0.0, nz])).tolist()
-    tilt = math.atan2(-nz, nx)
-    quarter = [k * math.pi / 2 for k in range(4)]
-    plates = [Box([h, a_top + 2 * h, norm / 2], centre, yaw, tilt) for yaw in quarter]
-    outer = a_top + 2 * h  # the slab leaves a square opening of this half-width
-    zc, zh = -(D + 2 * h) / 2, (D + 2 * h) / 2
-    slab = [(W - outer) / 2, (W + outer) / 2, zh]
-    slabs = [Box(slab, [(outer + W) / 2, (W - outer) / 2, zc], yaw, 0.0) for yaw in quarter]
-    return [*plates, *slabs, Box([outer, outer, h], [0.0, 0.0, -D - h], None, 0.0)]
-
-
-def damping_inertias(
-    mass_matrix: np.ndarray, index: Sequence[int], damping: Sequence[float], config: WorldConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per joint ``index[j]`` of ``mass_matrix`` (at q = 0; joint damping ``damping[j]``): its
-    effective inertia ``m = 1 / (M^-1)_jj`` and the least inertia ``margin b h`` at which
-    PyBullet's explicit joint damping is stable (h the physics step).  A world adds the
-    difference, where m is below it, to the joint's child link as rotor-like inertia."""
-    dt = config.dt / config.substeps
-    m_eff = 1.0 / np.diag(np.linalg.inv(mass_matrix))[list(index)]
-    need = np.array([config.damping_margin * b * dt for b in damping])
-    return m_eff, need
-
-
-POSITION_MARGIN = 0.02  # rad: a joint this near a position limit trips the reflex
-
-
-class Reflex(NamedTuple):
-    """The limits a real arm's controller watches (``[dof]`` each): a joint faster than its
-    velocity limit ``|q-dot_j| > v_j``, or nearer than :data:`POSITION_MARGIN` to a position
-    limit of a bounded joint, ``q_j < lower_j + margin`` or ``q_j > upper_j - margin``, stops
-    the arm (docs/RELIABILITY.md, "The arm's limits")."""
-
-    velocity: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-
-    @classmethod
-    def of(cls, arm: ArmSpec) -> Reflex:
-        """The reflex of ``arm``'s URDF limits (a continuous joint has no position limit)."""
-        bounded = np.asarray(arm.bounded, dtype=bool)
-        lower = np.where(bounded, np.asarray(arm.lower) + POSITION_MARGIN, -np.inf)
-        upper = np.where(bounded, np.asarray(arm.upper) - POSITION_MARGIN, np.inf)
-        return cls(np.asarray(arm.velocity, dtype=np.float64), lower, upper)
-
-    def violation(self, q: np.ndarray, qd: np.ndarray, step: int) -> str | None:
-        """The first limit the joint state ``(q, qd)`` passes, as one line naming the joint
-        (from 1) and the control ``step``; None within every limit."""
-        over = np.abs(qd) / self.velocity
-        j = int(np.argmax(over))
-        if over[j] > 1.0:
-            return (
-                f"joint {j + 1} at {abs(qd[j]):.3g} rad/s over its velocity limit "
-                f"{self.velocity[j]:.3g} at step {step}"
-            )
-        outside = (q < self.lower) | (q > self.upper)
-        if outside.any():
-            j = int(np.argmax(outside))
-            return (
-                f"joint {j + 1} at {q[j]:.3g} rad, within {POSITION_MARGIN} rad of its position "
-                f"limits [{self.lower[j] - POSITION_MARGIN:.3g}, "
-                f"{self.upper[j] + POSITION_MARGIN:.3g}] at step {step}"
-            )
-        return None
-
-
 class World(ABC):
     """One world with the arm, the table and the hole, stepped by an engine (module
     docstring).  Not picklable: build it in the process that uses it.
@@ -319,6 +230,12 @@ class World(ABC):
     def close(self) -> None:
         """Release the engine's resources."""
 
+    def plant_urdf(self) -> str:
+        """The URDF of the arm as simulated: the arm's own, unless the engine simulates a
+        plant that departs from it (:meth:`PegWorld.plant_urdf
+        <lolgps_torch.sim.world.PegWorld.plant_urdf>`)."""
+        return self.arm.urdf_text
+
     # the interface, the same for every engine
 
     def set_hole(self, offset: tuple[float, float]) -> None:
@@ -378,9 +295,9 @@ class World(ABC):
 
     def check_limits(self) -> bool:
         """Whether the arm's controller has stopped the arm: at the joint state now, a joint
-        past its velocity limit or within :data:`POSITION_MARGIN` of a position limit
-        (:class:`Reflex`) brakes it to rest where it is and sets :attr:`fault`; with the
-        limits off, never."""
+        past its velocity limit or within :data:`~lolgps_torch.sim.reflex.POSITION_MARGIN` of
+        a position limit (:class:`Reflex`) brakes it to rest where it is and sets
+        :attr:`fault`; with the limits off, never."""
         if self.reflex is None or self.fault is not None:
             return self.fault is not None
         q, qd = self._joint_state()

@@ -12,7 +12,7 @@ The arm's visual shapes are not loaded unless pictures are taken (:class:`PegWor
 it is given (seconds for a description with 135 MB of meshes, docs/PERFORMANCE.md), and
 nothing it simulates depends on visual shapes.
 
-The hole is a static body of boxes (:func:`~lolgps_torch.sim.simulator.hole_boxes`), moved to
+The hole is a static body of boxes (:func:`~lolgps_torch.sim.geometry.hole_boxes`), moved to
 the condition's planar position.
 """
 
@@ -28,9 +28,10 @@ from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.sim.geometry import damping_inertias, hole_boxes
 from lolgps_torch.sim.plant import NOMINAL_PLANT, PlantConfig, reshaped_urdf
 from lolgps_torch.sim.pybullet_quiet import pb, silenced
-from lolgps_torch.sim.simulator import World, WorldConfig, damping_inertias, hole_boxes
+from lolgps_torch.sim.simulator import World, WorldConfig
 
 __all__ = ["PegWorld", "WorldConfig"]
 
