@@ -4,17 +4,19 @@ through a checkpoint."""
 
 from __future__ import annotations
 
-import functools
 import pickle
+from dataclasses import dataclass
 from pathlib import Path
 
+import pytest
 import torch
 
 from lolgps_torch.data.checkpoint import load_policy, save_policy
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
-from lolgps_torch.policy.guard import Guard, fit_guard, guarded
+from lolgps_torch.policy.guard import Guard, fit_guard, guarded, within_limits
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.rollout import Rowwise, matmul_rows
+from lolgps_torch.sim.simulator import WorldConfig
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import PegTask, TaskConfig
 
@@ -142,9 +144,35 @@ def _states(qd: list[list[float]], distance: list[float]) -> torch.Tensor:
     return x
 
 
+@dataclass
+class InertiaArm:
+    """An arm model of constant mass matrix ``inertia`` and a control step of 1 s, with the
+    given limits (:class:`ArmBrake`); its stopping torque ``inertia q-dot`` is computed row
+    by row (:func:`matmul_rows`)."""
+
+    inertia: torch.Tensor
+    layout: StateLayout = LAYOUT
+    velocity: torch.Tensor = torch.full((2,), torch.inf, dtype=F64)
+    lower: torch.Tensor = torch.full((2,), -torch.inf, dtype=F64)
+    upper: torch.Tensor = torch.full((2,), torch.inf, dtype=F64)
+    dt: float = 1.0
+
+    def stopping(self, x: torch.Tensor, hover: torch.Tensor | None = None) -> torch.Tensor:
+        return matmul_rows(x[..., self.layout.qd], self.inertia)
+
+    def speed_change(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return torch.linalg.solve(self.inertia, u[..., None])[..., 0]
+
+    def torque_for(self, x: torch.Tensor, change: torch.Tensor) -> torch.Tensor:
+        return (self.inertia @ change[..., None])[..., 0]
+
+
+UNIT = InertiaArm(torch.eye(2, dtype=F64))
+
+
 def _speeds(x: torch.Tensor) -> torch.Tensor:
     """The stopping torque of a two-joint arm of unit inertias and a control step of 1 s."""
-    return x[..., LAYOUT.qd]
+    return UNIT.stopping(x)
 
 
 def test_the_guard_bounds_torques_and_brakes_while_a_bound_is_passed() -> None:
@@ -182,7 +210,7 @@ def test_the_actor_tracks_each_rollouts_closest_approach(tmp_path: Path) -> None
     policy = GaussianPolicy(LAYOUT.dX, LAYOUT.dU)
     policy.set_guard(Guard(torch.full((2,), 1e6, dtype=F64), torch.ones(1, 2, dtype=F64),
                            torch.tensor(1.0, dtype=F64), torch.tensor(0.05, dtype=F64), NO_HOVER))  # fmt: skip
-    actor = policy_actor(policy, _speeds)
+    actor = policy_actor(policy, UNIT)
     near, far = _states([[0.0, 0.0]] * 2, [0.1, 0.1]), _states([[0.0, 0.0]] * 2, [0.1, 0.2])
     actor(0, near, slice(0, 2))
     held = actor(1, far, slice(0, 2))
@@ -217,11 +245,6 @@ def test_the_actor_tracks_each_rollouts_closest_approach(tmp_path: Path) -> None
         assert braked.guard.brake.shape == () and float(braked.guard.brake) == share
 
 
-def _rowwise_stopping(inertia: torch.Tensor, layout: StateLayout, x: torch.Tensor) -> torch.Tensor:
-    """``inertia q-dot`` row by row (:func:`matmul_rows`)."""
-    return matmul_rows(x[..., layout.qd], inertia)
-
-
 def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
     """The policy's row-wise form (a feedback head, random weights, the brake tripping on some
     rows, noise): each row's action is the same bits in batches of 1 to 12 rows at any place,
@@ -240,7 +263,7 @@ def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
     x = torch.randn(n, dX, dtype=F64, generator=g)
     x[::3, layout.qd] *= 4.0  # rows 0, 3, 6, 9 trip the brake
     noise = torch.randn(n, 3, dU, dtype=F64, generator=g)
-    actor = policy_actor(policy, functools.partial(_rowwise_stopping, inertia, layout), noise)
+    actor = policy_actor(policy, InertiaArm(inertia, layout, *_free(dU)), noise)
     assert isinstance(actor, Rowwise)
     alone = torch.cat([actor.rowwise()(2, x[i : i + 1], slice(i, i + 1)) for i in range(n)])
     for size in (2, 5, 12):
@@ -250,3 +273,61 @@ def test_the_rowwise_actor_gives_each_row_the_same_bits_in_any_batch() -> None:
     torch.testing.assert_close(actor(2, x, slice(0, n)), alone, rtol=0, atol=1e-12)
     braked = (-0.5 * x[::3, layout.qd] @ inertia.T).clamp(-50.0, 50.0)
     torch.testing.assert_close(alone[::3], braked, rtol=0, atol=1e-12)  # the brake acts
+
+
+def _free(dU: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Velocity and position limits that never bind, for ``dU`` joints."""
+    inf = torch.full((dU,), torch.inf, dtype=F64)
+    return inf, -inf, inf.clone()
+
+
+def test_actions_are_scaled_to_keep_the_predicted_speeds_and_positions_within_limits() -> None:
+    coupled = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=F64)
+    one = torch.ones(2, dtype=F64)
+    arm = InertiaArm(coupled, LAYOUT, one, -one, one.clone())  # v = 1 rad/s, q in [-1, 1] rad
+    x = _states([[0.0, 0.0], [0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [0.0, 0.0]], [0.1] * 5)
+    x[4, LAYOUT.q] = torch.tensor([0.6, 0.0], dtype=F64)  # 0.3 rad from the bound at 1 - 0.1
+    u = torch.tensor([[0.1, 0.1], [4.0, 0.0], [1.0, 0.0], [0.0, 0.0], [2.0, 0.0]], dtype=F64)
+    out = within_limits(u, x, LAYOUT, arm, share=0.8, margin=0.1)
+    after = x[:, LAYOUT.qd] + arm.speed_change(x, out)
+    assert torch.equal(out[0], u[0])  # well within: untouched
+    for row, bound in ((1, 0.8), (2, 0.8), (4, 0.3)):  # scaled along u to the first bound met
+        assert torch.allclose(out[row], out[row].norm() / u[row].norm() * u[row])
+        assert float(after[row].abs().max()) == pytest.approx(bound)
+    # row 3 coasts past 0.8 rad/s with no torque: braked back to the bound, the other joint kept
+    assert torch.allclose(after[3], torch.tensor([0.8, 0.0], dtype=F64))
+    # past the position bound a joint may stop or move back, not on
+    x[4, LAYOUT.q] = torch.tensor([0.95, 0.0], dtype=F64)
+    back = torch.tensor([[-0.2, 0.0]], dtype=F64)
+    assert torch.equal(within_limits(back, x[4:], LAYOUT, arm, 0.8, 0.1), back)
+    assert (
+        float(arm.speed_change(x[4:], within_limits(-back, x[4:], LAYOUT, arm, 0.8, 0.1))[0, 0])
+        <= 1e-12
+    )
+    # a joint without limits is never scaled
+    free = InertiaArm(coupled, LAYOUT, *_free(2))
+    assert torch.equal(within_limits(u, x, LAYOUT, free, 0.8, 0.1), u)
+
+
+def test_the_guard_keeps_a_flinging_policy_within_the_velocity_limits_in_pybullet() -> None:
+    """A policy that asks for the arm's whole effort trips the arm's reflex on its first step;
+    through the guard's limits it moves at most at the limit share, and no reflex fires."""
+    config = TaskConfig(urdf=str(ROOT / "robots" / "kuka_peg.urdf"), world=WorldConfig(T=8))
+    task = PegTask(config, n_worlds=1)
+    try:
+        effort = torch.tensor(task.arm.effort, dtype=F64)
+        policy = GaussianPolicy(task.layout.dX, task.layout.dU)
+        policy.set_guard(Guard.off(task.layout.dU))
+        with torch.no_grad():
+            policy.u_mean.copy_(effort * torch.tensor([1.0, -1.0] * 4)[: task.layout.dU])
+            policy.u_scale.zero_()
+        unguarded = GaussianPolicy(task.layout.dX, task.layout.dU, PolicyConfig(guard=False))
+        unguarded.load_state_dict(policy.state_dict())
+        flung = task.sample(policy_actor(unguarded, task.model), [(0.0, 0.0)])
+        assert bool(flung.fault.all())
+        kept = task.sample(policy_actor(policy, task.model), [(0.0, 0.0)])
+        assert not bool(kept.fault.any())
+        peak = (kept.x[..., task.layout.qd].abs() / task.model.velocity).amax()
+        assert 0.3 < float(peak) <= 0.8 * 1.05
+    finally:
+        task.close()

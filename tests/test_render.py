@@ -156,9 +156,7 @@ def test_clips_carry_the_distances_the_task_measures(
     task's own sampling (the stream's measure, summary.json) reports."""
     task = tiny_task
     clips = record_clips(tiny_run, task, [0, 1], "both")
-    policy = task.sample(
-        policy_actor(tiny_run.policy(), task.model.stopping), OFFSETS
-    ).final_distance
+    policy = task.sample(policy_actor(tiny_run.policy(), task.model), OFFSETS).final_distance
     zero = torch.zeros(1, T, task.layout.dU, dtype=torch.float64)
     hold = task.sample(lambda t, x, rows: zero[:, t].expand(len(x), -1), OFFSETS)
     by_who = {(c.who, c.condition): c for c in clips}

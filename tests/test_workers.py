@@ -39,8 +39,8 @@ def test_rollouts_are_the_same_for_one_and_two_workers(tasks: tuple[PegTask, Peg
     policy.trained = True
     actors = [
         linear_gaussian_actor(initial_controller(one, LocalConfig()), noise),
-        policy_actor(policy, one.model.stopping, noise),
-        policy_actor(policy, one.model.stopping),
+        policy_actor(policy, one.model, noise),
+        policy_actor(policy, one.model),
     ]
     for actor in actors:
         a, b = one.sample(actor, OFFSETS), two.sample(actor, OFFSETS)

@@ -121,7 +121,7 @@ def record_clips(
     offsets = [records[c].offset for c in conditions]
     clips: dict[tuple[str, int], Clip] = {}
     if who in ("policy", "both"):
-        x = task.sampler.rollout(policy_actor(loaded.policy(after), task.model.stopping), offsets).x
+        x = task.sampler.rollout(policy_actor(loaded.policy(after), task.model), offsets).x
         for c, off, xs in zip(conditions, offsets, x, strict=True):
             clips["policy", c] = _clip(task, "policy", c, off, xs)
     if who in ("controller", "both"):

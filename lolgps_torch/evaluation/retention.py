@@ -64,9 +64,7 @@ def retention(loaded: LoadedRun) -> dict[str, Any]:
         for record in loaded.records:
             policy = loaded.policy(record.condition)
             distance.append(
-                task.sample(
-                    policy_actor(policy, task.model.stopping), offsets
-                ).final_distance.tolist()
+                task.sample(policy_actor(policy, task.model), offsets).final_distance.tolist()
             )
             fit.append([_mean_fit(policy, r.samples) for r in loaded.records])
     finally:

@@ -115,14 +115,14 @@ class RolloutSetup:
 
 class PolicyRoller:
     """Noiseless rollouts (``u_t = mu_theta(x_t)``) of global policies in the worlds of
-    ``sampler``, whose states and actions are laid out as ``model``'s, the arm's model whose
-    brake the policies' guards use; a policy of other sizes is a :class:`LolgpsError`. The
+    ``sampler``, whose states and actions are laid out as ``model``'s, the arm's model the
+    policies' guards brake and predict by; a policy of other sizes is a :class:`LolgpsError`. The
     sampler stays its owner's to close."""
 
     def __init__(
         self, sampler: Sampler, model: ControlStep, policies: Sequence[PolicyState]
     ) -> None:
-        self.sampler, self.stopping, layout = sampler, model.stopping, model.layout
+        self.sampler, self.model, layout = sampler, model, model.layout
         self.policies = [state.build().eval() for state in policies]
         for state, policy in zip(policies, self.policies, strict=True):
             if (policy.dX, policy.dU) != (layout.dX, layout.dU):
@@ -133,7 +133,7 @@ class PolicyRoller:
 
     def __call__(self, job: Job) -> Rollouts:
         """One rollout per position of ``job``."""
-        actor = policy_actor(self.policies[job.policy], self.stopping)
+        actor = policy_actor(self.policies[job.policy], self.model)
         return Rollouts(*(a.numpy() for a in self.sampler.rollout(actor, list(job.positions))))
 
 

@@ -128,7 +128,7 @@ class PolicyVisits:
         noise = torch.cat([noise.new_zeros(C, T, dU), noise]).to(self.task.device)
         try:
             runs: Trajectories = self.task.sample(
-                policy_actor(policy, self.task.model.stopping, noise), offsets, "visit"
+                policy_actor(policy, self.task.model, noise), offsets, "visit"
             )
         except NumericalError:
             return Visit([math.inf] * C, None, len(offsets), time.perf_counter() - t0)

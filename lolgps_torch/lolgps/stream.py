@@ -404,7 +404,7 @@ def policy_distances(
         return [float("nan")] * len(offsets)
     try:
         return task.sample(
-            policy_actor(policy, task.model.stopping), offsets, "probe"
+            policy_actor(policy, task.model), offsets, "probe"
         ).scored_distance.tolist()
     except NumericalError:
         return [math.inf] * len(offsets)

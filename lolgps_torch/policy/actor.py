@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
-from lolgps_torch.policy.guard import Guard, Stopping, guarded
+from lolgps_torch.policy.guard import ArmBrake, Guard, guarded, within_limits
 from lolgps_torch.policy.net import Acting, GaussianPolicy
 from lolgps_torch.sim.rollout import Actor, matmul_rows
 from lolgps_torch.state import StateLayout
@@ -17,7 +17,7 @@ from lolgps_torch.state import StateLayout
 class PolicyActor:
     """``u_t = mu_theta(x_t) + shifted_t`` for the batch's rows ``rows`` (no noise when
     ``shifted`` is None), through the policy's guard (:func:`guarded`, braking by the arm's
-    model ``stopping``), which remembers per row the tip's closest approach to its target in
+    model ``arm``, then :func:`within_limits` of the arm's limits), which remembers per row the tip's closest approach to its target in
     this rollout (``closest``, m) and whether its brake steers it above the target
     (``steering``), both grown to the rows seen and forgotten at t = 0; plain data, so
     that it can be sent to a worker process. ``by_rows``: the row-wise form
@@ -26,7 +26,7 @@ class PolicyActor:
     policy on one row, where looking them up took a quarter of its time."""
 
     policy: GaussianPolicy
-    stopping: Stopping
+    arm: ArmBrake
     shifted: Tensor | None  # [N, T, dU]: chol(Sigma_pi) eps_t per rollout
     closest: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.float64))
     steering: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
@@ -67,16 +67,19 @@ class PolicyActor:
             self.steering[start:stop] = False
         u, self.closest[start:stop], self.steering[start:stop] = guarded(
             u, x, self.layout, self.closest[start:stop], self.steering[start:stop], self.guard,
-            t, self.stopping,
+            t, self.arm.stopping,
         )  # fmt: skip
-        return u
+        config = self.policy.config
+        if not config.guard:
+            return u
+        return within_limits(u, x, self.layout, self.arm, config.guard_limit, config.guard_position)
 
 
-def policy_actor(policy: GaussianPolicy, stopping: Stopping, noise: Tensor | None = None) -> Actor:
+def policy_actor(policy: GaussianPolicy, arm: ArmBrake, noise: Tensor | None = None) -> Actor:
     """The global policy: its mean action, plus ``chol(Sigma_pi) eps_t`` when given noise
-    ``eps: [N, T, dU]``, through its guard, whose brake stops the joints by ``stopping``
-    (``ControlStep.stopping`` of the arm's model)."""
+    ``eps: [N, T, dU]``, through its guard, which brakes and keeps within the limits by the
+    arm's model ``arm`` (:class:`~lolgps_torch.sim.model.ControlStep`)."""
     if noise is None:
-        return PolicyActor(policy, stopping, None)
+        return PolicyActor(policy, arm, None)
     L = torch.linalg.cholesky(policy.covariance()).detach()
-    return PolicyActor(policy, stopping, noise @ L.T)
+    return PolicyActor(policy, arm, noise @ L.T)

@@ -174,3 +174,68 @@ def guarded(
         if bool(stopped.any()):
             held[stopped] = -guard.brake * stopping(x[stopped])
     return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest, steered
+
+
+class ArmBrake(Protocol):
+    """The limits the guard keeps the arm within, and the arm model it brakes and predicts the
+    arm by (:class:`lolgps_torch.sim.model.ControlStep`): the URDF's velocity limits and
+    position limits ``[dU]`` (-inf and inf where a joint has none), the control step ``dt``
+    (s), the brake's torque (:class:`Stopping`), the joint speeds' change a torque makes within
+    a step, ``dt M(q)^-1 u``, and its inverse."""
+
+    velocity: Tensor
+    lower: Tensor
+    upper: Tensor
+    dt: float
+
+    def stopping(self, x: Tensor, hover: Tensor | None = None) -> Tensor: ...
+
+    def speed_change(self, x: Tensor, u: Tensor) -> Tensor: ...
+
+    def torque_for(self, x: Tensor, change: Tensor) -> Tensor: ...
+
+
+def within_limits(
+    u: Tensor, x: Tensor, layout: StateLayout, arm: ArmBrake, share: float, margin: float
+) -> Tensor:
+    """Actions ``u: [n, dU]`` at states ``x: [n, dX]`` (blocks as ``layout``), each row scaled
+    so that the arm model's joint speeds after the step keep within the arm's limits:
+
+        q-dot' = q-dot + a dt M(q)^-1 u,   a = max {a in [0, 1]: lo <= q-dot' <= hi}
+        hi_j = min(s v_j, max(0, (upper_j - m - q_j) / dt))
+        lo_j = max(-s v_j, min(0, (lower_j + m - q_j) / dt))
+
+    (v the velocity limits, s = ``share``, m = ``margin`` (rad) inside the position limits: a
+    joint may come to the bound within the step, and at or past it only stop or move back).
+    Where no such a exists (the speeds alone already leave the bounds), the row's action is
+    the torque ``M(q) (clip(q-dot, lo, hi) - q-dot) / dt`` that brings each joint's speed back
+    to its nearest bound within the step. The speed is checked at the end of the step, where
+    a torque held from rest is fastest; the model leaves out gravity (the arm compensates it),
+    Coriolis forces, damping and a command delay, which the share's headroom absorbs. Each row
+    is computed alone."""
+    q, qd = x[..., layout.q], x[..., layout.qd]
+    cap = share * arm.velocity
+    hi = torch.minimum(cap, ((arm.upper - margin - q) / arm.dt).clamp(min=0.0))
+    lo = torch.maximum(-cap, ((arm.lower + margin - q) / arm.dt).clamp(max=0.0))
+    change = arm.speed_change(x, u)
+    after = qd + change
+    outside = ((after < lo) | (after > hi)).any(-1)
+    if not bool(outside.any()):
+        return u
+    s, c, lo, hi = qd[outside], change[outside], lo[outside], hi[outside]
+    moving = c != 0
+    safe = torch.where(moving, c, torch.ones_like(c))
+    ends = torch.stack([(lo - s) / safe, (hi - s) / safe])
+    still = (s >= lo) & (s <= hi)  # a joint the action does not move: any a, or none
+    first = torch.where(moving, ends.amin(0), torch.where(still, -math.inf, math.inf))
+    last = torch.where(moving, ends.amax(0), torch.where(still, math.inf, -math.inf))
+    a_lo, a_hi = first.amax(-1).clamp(min=0.0), last.amin(-1).clamp(max=1.0)
+    feasible = a_lo <= a_hi
+    held = u.clone()
+    rows = outside.nonzero().squeeze(-1)
+    held[rows[feasible]] = a_hi[feasible, None] * u[rows[feasible]]
+    if not bool(feasible.all()):
+        stuck = rows[~feasible]
+        back = s[~feasible].clamp(lo[~feasible], hi[~feasible]) - s[~feasible]
+        held[stuck] = arm.torque_for(x[stuck], back)
+    return held

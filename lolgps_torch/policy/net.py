@@ -72,7 +72,11 @@ class PolicyConfig:
         "the hover").
     :param guard_hover_time: the time constant (s) of that approach.
     :param guard_limit: the brake also trips where a joint passes this share of its velocity
-        limit, before the arm's own controller would stop the arm there.
+        limit, before the arm's own controller would stop the arm there; and every action is
+        scaled down where the arm's model predicts that a joint would pass it within the step
+        (:func:`~lolgps_torch.policy.guard.within_limits`).
+    :param guard_position: that scaling also keeps each bounded joint this far (rad) inside
+        its position limits.
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
         scaled targets); the policy itself stays float64. float32 takes a third less loop
         time and reached as many positions over 38 paired runs, but fewer on the published
@@ -99,6 +103,7 @@ class PolicyConfig:
     guard_hover: float | None = 0.05
     guard_hover_time: float = 1.0
     guard_limit: float = 0.8
+    guard_position: float = 0.1
 
     def __post_init__(self) -> None:
         check_fields(
@@ -121,6 +126,7 @@ class PolicyConfig:
                 "guard_hover": self.guard_hover is None or 0.0 <= self.guard_hover < math.inf,
                 "guard_hover_time": 0.0 < self.guard_hover_time < math.inf,
                 "guard_limit": 0.0 < self.guard_limit <= 1.0,
+                "guard_position": 0.0 <= self.guard_position < math.inf,
             },
         )
 

@@ -60,7 +60,7 @@ class ControlStep:
         identified: tuple[ArmDynamics, float, float] | None = None,
     ) -> None:
         self.config, self.layout = config, config.layout(arm.dof)
-        self.h = config.dt / config.substeps
+        self.dt, self.h = config.dt, config.dt / config.substeps
         delay = config.delay_steps  # j(s): which command drives physics step s
         self.late = [max(0, -(-(delay - s) // config.substeps)) for s in range(config.substeps)]
         plain = ArmDynamics(arm, config.gravity, "pybullet", device=device)
@@ -69,6 +69,12 @@ class ControlStep:
         )
         self.dynamics, self.compensation, self.own = identified or (self.urdf, 1.0, 0.0)
         self.effort = torch.tensor(arm.effort, dtype=torch.float64, device=self.dynamics.device)
+        #: the URDF's velocity limits and position limits ``[dU]`` (-inf/inf: a continuous joint)
+        self.velocity = torch.tensor(arm.velocity, dtype=torch.float64, device=self.effort.device)
+        bounded = torch.tensor(arm.bounded, device=self.effort.device)
+        inf = torch.tensor(torch.inf, dtype=torch.float64, device=self.effort.device)
+        self.lower = torch.where(bounded, self.effort.new_tensor(arm.lower), -inf)
+        self.upper = torch.where(bounded, self.effort.new_tensor(arm.upper), inf)
 
     def __call__(self, x: Tensor, u: Tensor) -> Tensor:
         """The next state ``[..., dX]`` from states ``x: [..., dX]`` and actions ``u: [..., dU]``."""
@@ -104,6 +110,24 @@ class ControlStep:
                 JJ = J @ J.T + 1e-4 * torch.eye(6, dtype=x.dtype, device=x.device)
                 qd = qd - J.T @ torch.linalg.solve(JJ, e) / hover[1]
             rows.append((self.urdf.mass_matrix(q[None])[0] * qd).sum(-1))
+        return torch.stack(rows) / self.config.dt
+
+    def speed_change(self, x: Tensor, u: Tensor) -> Tensor:
+        """The change of the joint speeds that actions ``u: [n, dU]`` make within one control
+        step from states ``x: [n, dX]`` by the URDF's model, ``dt M(q)^-1 u`` (``[n, dU]``;
+        gravity compensated, Coriolis and damping left out); each row computed alone."""
+        q = x[..., self.layout.q]
+        rows = [
+            torch.linalg.solve(self.urdf.mass_matrix(q[i : i + 1])[0], u[i]) for i in range(len(x))
+        ]
+        return self.config.dt * torch.stack(rows)
+
+    def torque_for(self, x: Tensor, change: Tensor) -> Tensor:
+        """The torque that changes the joint speeds of states ``x: [n, dX]`` by ``change:
+        [n, dU]`` within one control step by the URDF's model, ``M(q) change / dt`` (the
+        inverse of :meth:`speed_change`); each row computed alone."""
+        q = x[..., self.layout.q]
+        rows = [self.urdf.mass_matrix(q[i : i + 1])[0] @ change[i] for i in range(len(x))]
         return torch.stack(rows) / self.config.dt
 
     def _commands(self, x: Tensor, u: Tensor) -> Tensor:

@@ -76,7 +76,7 @@ def _policy_rollouts(tasks: dict[str, PegTask], repeats: int) -> dict[str, float
     cpu: dict[str, list[float]] = {name: [] for name in tasks}
     for _ in range(repeats):
         for name, task in tasks.items():
-            actor = policy_actor(GaussianPolicy(task.layout.dX, task.arm.dof), task.model.stopping)
+            actor = policy_actor(GaussianPolicy(task.layout.dX, task.arm.dof), task.model)
             t0, c0 = time.perf_counter(), time.process_time()
             task.sample(actor, positions)
             times[name].append((time.perf_counter() - t0) / len(positions))

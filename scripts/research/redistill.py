@@ -86,7 +86,7 @@ def test_around(loaded: LoadedRun, policy: GaussianPolicy, jitter: float) -> Non
     offsets = [(r.offset[0] + dx, r.offset[1] + dy) for r in records for dx, dy in around]
     task = loaded.make_task()
     try:
-        result = task.sample(policy_actor(policy, task.model.stopping), offsets)
+        result = task.sample(policy_actor(policy, task.model), offsets)
     finally:
         task.close()
     success = result.success.reshape(len(records), len(around))

@@ -70,7 +70,7 @@ def measure(path: str, args: argparse.Namespace, table: dict[tuple, list[list[fl
     policy = load_policy(loaded.folder.path / stage["checkpoint"])
     task = loaded.make_task()
     try:
-        rollouts = task.sample(policy_actor(policy, task.model.stopping), positions)
+        rollouts = task.sample(policy_actor(policy, task.model), positions)
     finally:
         task.close()
     qd, points = task.layout.qd, task.layout.points

@@ -134,7 +134,7 @@ def _rollouts(
     the joint's velocity limit ``[len(offsets)]``."""
     task = loaded.make_task()
     try:
-        rollouts = task.sample(policy_actor(policy, task.model.stopping), offsets)
+        rollouts = task.sample(policy_actor(policy, task.model), offsets)
     finally:
         task.close()
     limits = torch.tensor(task.arm.velocity, dtype=torch.float64)
