@@ -1,6 +1,9 @@
 """The Franka backend (lolgps_torch/sim/franka.py) against a stand-in FR3 through the real
 protocol: pylibfranka talking to franky-sim (tests/franka_stand_in.py), each test with a
-server of its own in a private network namespace, stopped when the test's command ends."""
+server of its own in a private network namespace, stopped when the test's command ends.
+The stand-in's tests run apart from the default suite, its server stepping at 1 kHz in real
+time: the short ones marked ``franka`` (``python -m pytest -q -m franka``), the learning runs
+``slow``."""
 
 from __future__ import annotations
 
@@ -12,9 +15,11 @@ import shutil
 import subprocess
 import sys
 import textwrap
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from conftest import ScriptRun
 
 REPO = Path(__file__).resolve().parents[1]
 STAND_IN = REPO / "tests" / "franka_stand_in.py"
@@ -97,7 +102,7 @@ class Act:
 """
 
 
-def run_script(
+def run_on_stand_in(
     mjcf: Path, body: str, reflexes: bool = False, deadline: float = 0.2, limits: str = "reflex"
 ) -> dict[str, object]:
     """The prelude (the FR3's sampler on the stand-in, the learner's deadline ``deadline``,
@@ -122,6 +127,7 @@ def late_at_most(fault: object) -> bool:
     return fault is None or str(fault).startswith(f"the arm stopped: {LATE}")
 
 
+@pytest.mark.franka
 def test_holds_still(fr3: Path) -> None:
     """Connected and moved to the start pose, zero torque over the arm's own gravity
     compensation for 1 s (20 control steps) moves no joint by 1 mrad, at the arm's 1 kHz
@@ -129,7 +135,7 @@ def test_holds_still(fr3: Path) -> None:
     move, 0.79 rad of joint 7 from the stand-in's home pose, leaves that joint wound 1 mrad
     into MuJoCo's soft joint friction, which the first torque command releases (measured:
     -1.0 mrad in the first step, then nothing; a property of the stand-in)."""
-    result = run_script(
+    result = run_on_stand_in(
         fr3,
         """
         world.reset(q0)
@@ -153,11 +159,12 @@ def test_holds_still(fr3: Path) -> None:
     assert result["missed"] <= 10  # 1 % (the machine may be loaded)
 
 
+@pytest.mark.franka
 def test_speed_reflex_reported_and_recovered(fr3: Path) -> None:
     """Joint 7 driven past the FR3's velocity limit: the arm's reflex aborts the torque
     command; the rollout ends as a fault in one line, the arm is recovered and moved back,
     and the next rollout runs."""
-    result = run_script(
+    result = run_on_stand_in(
         fr3,
         """
         fast = sampler.rollout(Act([0, 0, 0, 0, 0, 0, 12.0]), [(0.0, 0.0)])
@@ -177,12 +184,13 @@ def test_speed_reflex_reported_and_recovered(fr3: Path) -> None:
     assert "counts as failed" in str(result["output"])
 
 
+@pytest.mark.franka
 def test_stalled_learner_ends_rollout(fr3: Path) -> None:
     """The learner stalls 100 ms within a rollout, the server enforcing the protocol's
     timing: the rollout ends as a fault (the arm's loop, keeping the protocol's pace, ends
     the torque command when the learner's command is later than its deadline, 90 ms here),
     and the next rollout runs."""
-    result = run_script(
+    result = run_on_stand_in(
         fr3,
         """
         stalled = sampler.rollout(Act([0.0] * 7, stall_at=10), [(0.0, 0.0)])
@@ -210,6 +218,7 @@ def run_stream(fr3: Path, out: Path, conditions: list[list[float]], *extra: str)
     ]  # fmt: skip
 
 
+@pytest.mark.franka
 def test_learns_one_condition_then_evaluates_on_the_arm(fr3: Path, tmp_path: Path) -> None:
     """One condition in free space, learnt on the arm from two rollouts an iteration: the peg
     tip ends within the success threshold of the hole's floor point, with no fault; then
@@ -250,13 +259,13 @@ def test_learns_one_condition_then_evaluates_on_the_arm(fr3: Path, tmp_path: Pat
         ),  # fmt: skip
     ],
 )
-def test_arm_flags_refused_in_one_line(script: str, flags: list[str], message: str) -> None:
+def test_arm_flags_refused_in_one_line(
+    script: str, flags: list[str], message: str, run_script: Callable[..., ScriptRun]
+) -> None:
     """Bad arm flags: one error line, exit status 2, before any arm is reached."""
-    result = subprocess.run(
-        [sys.executable, f"scripts/{script}", *flags], capture_output=True, text=True, cwd=REPO
-    )
-    assert result.returncode == 2, result.stderr
-    assert result.stderr.strip().splitlines()[-1].startswith(f"error: {message}")
+    result = run_script(f"scripts/{script}", *flags)
+    assert result.code == 2, result.err
+    assert result.err.strip().splitlines()[-1].startswith(f"error: {message}")
 
 
 def missed_share(output: str) -> float:
