@@ -20,6 +20,7 @@ from typing import Any, Literal
 
 import torch
 
+from lolgps_torch.arm_probes import measure_delay, measure_gravity
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalConfig
 from lolgps_torch.robot.validate import ArmWarning
@@ -27,7 +28,7 @@ from lolgps_torch.sim.franka import RealArmConfig
 from lolgps_torch.sim.gravity import GravityConfig
 from lolgps_torch.sim.latency import DelayConfig
 from lolgps_torch.sim.plant import PlantConfig
-from lolgps_torch.task import TaskConfig, measure_delay, measure_gravity
+from lolgps_torch.task import TaskConfig
 
 Position = tuple[float, float]
 
@@ -280,7 +281,7 @@ def add_delay_argument(parser: argparse.ArgumentParser) -> None:
 
 def detect_delay(task: TaskConfig, enabled: bool) -> float:
     """The arm's command delay (s) estimated from excitation rollouts at the start pose
-    (:func:`~lolgps_torch.task.measure_delay`), said in one line when not zero; 0 when not
+    (:func:`~lolgps_torch.arm_probes.measure_delay`), said in one line when not zero; 0 when not
     ``enabled`` or when the task already allows for a known delay."""
     if not delay_probed(task, enabled):
         return 0.0
@@ -341,7 +342,7 @@ def add_gravity_argument(parser: argparse.ArgumentParser) -> None:
 
 def detect_gravity(task: TaskConfig, enabled: bool) -> bool:
     """Whether the arm's commands lack gravity compensation, found from rollouts let go at the
-    start pose (:func:`~lolgps_torch.task.measure_gravity`), said in one line when they do or
+    start pose (:func:`~lolgps_torch.arm_probes.measure_gravity`), said in one line when they do or
     when the probe cannot tell (then they are taken as compensated); False when not
     ``enabled`` or when the task already compensates them."""
     if not gravity_probed(task, enabled):

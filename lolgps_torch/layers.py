@@ -12,7 +12,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("sim", "cost", "dynamics", "trajopt"),
     ("policy",),
     ("task",),
-    ("gym_env",),
+    ("gym_env", "arm_probes"),
     ("data",),
     ("lolgps",),
     ("evaluation",),

@@ -7,63 +7,39 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 from collections import Counter
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, get_args
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from lolgps_torch.configs import from_dict
 from lolgps_torch.cost.l12 import CostConfig, PegCost
-from lolgps_torch.dynamics.identify import (
-    ArmParameters,
-    IdentifyConfig,
-    TorqueBalance,
-    Transitions,
-    identified_dynamics,
-    identify,
-    misfit,
-)
-from lolgps_torch.errors import LolgpsError, NumericalError
+from lolgps_torch.dynamics.identify import TorqueBalance, identify_arm
+from lolgps_torch.dynamics.parameters import ArmParameters, IdentifyConfig, identified_dynamics
+from lolgps_torch.dynamics.transitions import TransitionStore
+from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.ik import solve_ik
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.peg import PegConfig
-from lolgps_torch.robot.placement import (
-    PlacementConfig,
-    Spots,
-    pinned,
-    place_task,
-    reach,
-    vertical_peg_targets,
-)
+from lolgps_torch.robot.placement import PlacementConfig, place_task, vertical_peg_targets
 from lolgps_torch.robot.spec import ArmSpec
-from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.arm_world import ArmSampler
-from lolgps_torch.sim.engines import build_world, engine_errors
+from lolgps_torch.sim.engines import engine_errors
 from lolgps_torch.sim.franka import SIMULATED, RealArmConfig
-from lolgps_torch.sim.gravity import GravityConfig, GravityEstimate, estimate_gravity, let_go
-from lolgps_torch.sim.latency import DelayConfig, DelayEstimate, estimate_delay, excite
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.rollout import Actor, Rollouts, Sampler, rollout_rows
-from lolgps_torch.sim.simulator import Simulator, World, WorldConfig, check_plant, require
-from lolgps_torch.sim.world import PegWorld
+from lolgps_torch.sim.simulator import Simulator, WorldConfig, check_plant, require
 from lolgps_torch.state import StateLayout
 from lolgps_torch.types import Trajectories
 
 RolloutKind = Literal["sample", "probe", "visit"]
 ROLLOUT_KINDS: tuple[RolloutKind, ...] = get_args(RolloutKind)
-
-IDENTIFY_TRANSITIONS = 400  # the newest free-space transitions identification uses
-CLEARANCE = 0.02  # m: a tip this far above the table touches nothing
-LIMIT_MARGIN = 0.05  # rad (or m): a joint this far from its limits is free
 
 
 @dataclass(frozen=True)
@@ -78,7 +54,8 @@ class TaskConfig:
     :param package_path: folders searched for the ROS packages that ``package://`` mesh URIs
         name, after the URDF's ancestors and ROS_PACKAGE_PATH.
     :param scale: the factor the stream's geometry is scaled by to fit the arm (hole offsets,
-        test areas, the start height and an attached peg's length; :func:`scaled`); the hole's
+        test areas, the start height and an attached peg's length;
+        :func:`~lolgps_torch.arm_probes.scaled`); the hole's
         depth and clearances stay as they are.
     :param plant: how the simulated arm departs from the URDF; only the worlds read it.
     :param sim: the simulator that steps the worlds: pybullet, or mujoco (the nominal plant
@@ -155,81 +132,6 @@ def check_speeds(speeds: Sequence[float]) -> None:
     bad = [v for v in speeds if not (math.isfinite(v) and v > 0.0)]
     if bad:
         raise LolgpsError(f"--velocity-limit must be positive and finite, got {bad[0]}")
-
-
-# Reach (m) of the arm the default geometry is made for (robots/kuka_peg.urdf, from the shoulder)
-REFERENCE_REACH = 1.15
-_SHRINK = 0.8  # each further try of --scale auto
-_TRIES = 4
-
-
-def scaled(config: TaskConfig, factor: float) -> TaskConfig:
-    """``config`` with the stream's geometry scaled by ``factor`` (relative to its own scale):
-    the hole positions the placement reaches, the start pose's offset from the hole and the
-    length of the peg attached to arms that carry none (a URDF's own peg stays)."""
-    placement = replace(
-        config.placement,
-        positions=tuple((dx * factor, dy * factor) for dx, dy in config.placement.positions),
-        start_offset=tuple(v * factor for v in config.placement.start_offset),  # type: ignore[arg-type]
-    )
-    peg = replace(config.peg, length=config.peg.length * factor)
-    return replace(config, scale=config.scale * factor, placement=placement, peg=peg)
-
-
-def fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
-    """``config`` as it is if the placement fits its geometry (the stream's positions in
-    ``config.placement``) to the arm, else scaled (:func:`scaled`) to fit: by the arm's reach
-    over :data:`REFERENCE_REACH`, then by :data:`_SHRINK` at each further try; the placement's
-    spots about the sampled tips are searched only where its grid fits no scale.  Returns the
-    config, its placement pinned (the hole and start pose found), and a line saying what was
-    scaled ("" when nothing was); a :class:`LolgpsError` when no try fits (the one that says
-    why the geometry as given does not).
-    The arm's warnings are left to the task built from the result (one set, not one a try)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ArmWarning)
-        return _fit_scale(config)
-
-
-def _fit_scale(config: TaskConfig) -> tuple[TaskConfig, str]:
-    """:func:`fit_scale`, its warnings not silenced: each scale with the placement's grid of
-    spots first, then each with the spots about the arm's sampled tips (so that an arm the grid
-    places, at some scale, is placed as it was)."""
-    arm = load_task_arm(config)
-    kinematics = PegKinematics(arm)
-    try:
-        return _pinned(config, arm, kinematics, "grid"), ""
-    except LolgpsError as error:
-        unscaled = error
-    radius = reach(arm, kinematics)[1]
-    factor = min(1.0, radius / REFERENCE_REACH)
-    tries = [scaled(config, factor * _SHRINK**attempt) for attempt in range(_TRIES)]
-    passes: tuple[tuple[Spots, list[TaskConfig]], ...] = (
-        ("grid", tries),
-        ("sampled", [config, *tries]),
-    )
-    for spots, candidates in passes:
-        for candidate in candidates:
-            arm = load_task_arm(candidate)
-            try:
-                placed = _pinned(candidate, arm, PegKinematics(arm), spots)
-            except LolgpsError:
-                continue
-            if placed.scale == config.scale:
-                return placed, ""
-            return placed, (
-                f"the default geometry does not fit this arm's reach ({radius:.2f} m): hole "
-                f"offsets, test areas, start height and attached peg scaled by "
-                f"{placed.scale:.3g} (--scale)"
-            )
-    raise unscaled from None
-
-
-def _pinned(
-    config: TaskConfig, arm: ArmSpec, kinematics: PegKinematics, spots: Spots
-) -> TaskConfig:
-    """``config`` with its placement pinned where :func:`place_task` puts the hole."""
-    geometry = place_task(arm, kinematics, config.placement, config.world.depth, spots)
-    return replace(config, placement=pinned(config.placement, geometry))
 
 
 def load_task_arm(config: TaskConfig) -> ArmSpec:
@@ -349,7 +251,10 @@ class PegTask:
         self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
         #: the rollouts run on the arm so far, by kind (:meth:`sample`)
         self.arm_rollouts: Counter[RolloutKind] = Counter()
-        self._seen: list[Transitions] = []  # free-space transitions kept for identification
+        #: the free transitions kept for identification (:meth:`record`)
+        self.transitions = TransitionStore(
+            self.arm, self.layout, config.world.depth, config.world.dt
+        )
         self._identified: ArmParameters | None = None  # the arm identified last
 
     @property
@@ -364,48 +269,18 @@ class PegTask:
         q0 = tuple(float(q) for q in self.geometry.q0)
         return ModelSetup(self.arm, self.config.world, self.config.cost, q0, str(self.device))
 
-    def free_transitions(self, samples: Trajectories) -> tuple[Tensor, Tensor]:
-        """The states ``[N, T+1, dX]`` of ``samples`` (the final one appended) and which of
-        their transitions ``[N, T]`` are free of contact (before and after, the tip higher
-        than the table by :data:`CLEARANCE` and the peg pointing down, its top above its tip,
-        so that no part of it is lower than the tip by more than its radius) and of the joint
-        limits: each joint farther from them, at both ends, than :data:`LIMIT_MARGIN` and the
-        way it can go in one control step at the larger of its two speeds,
-        ``margin + dt max(|qd_0|, |qd_1|)`` (a joint 0.08 rad short of its limit at 17 rad/s
-        strikes it within the step and may be back inside at its end, moving away)."""
-        lay = self.layout
-        lower, upper = (
-            torch.tensor(limit, dtype=torch.float64, device=self.device)
-            for limit in (self.arm.lower, self.arm.upper)
-        )
-        x = torch.cat([samples.x, samples.final_state[:, None]], 1)
-        q, qd, points = x[..., lay.q], x[..., lay.qd], x[..., lay.points]
-        tip_height = points[..., 2]
-        # the points are offsets from targets, the top's above the tip's by the separation
-        top_over_tip = points[..., 5] - tip_height - self.arm.point_offsets[1][2]
-        clear = (tip_height > self.config.world.depth + CLEARANCE) & (top_over_tip > 0.0)
-        room = torch.minimum(q - lower, upper - q)
-        reach = LIMIT_MARGIN + self.config.world.dt * torch.maximum(
-            qd[:, :-1].abs(), qd[:, 1:].abs()
-        )
-        within = ((room[:, :-1] > reach) & (room[:, 1:] > reach)).all(-1)
-        return x, clear[:, :-1] & clear[:, 1:] & within
-
-    def record(self, samples: Trajectories, keep: int = IDENTIFY_TRANSITIONS) -> None:
-        """Keep the newest ``keep`` of the transitions of ``samples`` that are free of contact
-        and of the joint limits (:meth:`free_transitions`), for :meth:`identify_model`."""
-        x, free = self.free_transitions(samples)
-        kept = Transitions.from_rollouts(x, samples.u, self.layout, free)
-        self._seen.append(kept)
-        parts = zip(*self._seen, strict=True)
-        self._seen = [Transitions(*(torch.cat(list(part))[-keep:] for part in parts))]
+    def record(self, samples: Trajectories) -> None:
+        """Keep the free transitions of ``samples`` for :meth:`identify_model`
+        (:meth:`TransitionStore.record <lolgps_torch.dynamics.transitions.TransitionStore.record>`)."""
+        self.transitions.record(samples)
 
     def one_step_errors(self, samples: Trajectories) -> tuple[float, float, float, int]:
         """The root-mean-square joint-velocity error (rad/s) of one control step predicted by
         :attr:`model`, by the URDF's model and by the simulated arm's own
         (:meth:`plant_model`), over the free transitions of ``samples``
-        (:meth:`free_transitions`), and how many there are (NaN errors where none)."""
-        x, free = self.free_transitions(samples)
+        (:func:`~lolgps_torch.dynamics.transitions.free_transitions`), and how many there are
+        (NaN errors where none)."""
+        x, free = self.transitions.free(samples)
         before, after, u = x[:, :-1][free], x[:, 1:][free], samples.u[free]
         if before.shape[0] == 0:
             return math.nan, math.nan, math.nan, 0
@@ -419,16 +294,15 @@ class PegTask:
         return errors[0], errors[1], errors[2], int(before.shape[0])
 
     def plant_model(self) -> ControlStep:
-        """The control step of the arm as the simulator has it (:meth:`PegWorld.plant_urdf`:
-        the plant's link masses, inertias and payload) under the gravity compensation the
+        """The control step of the arm as the simulator has it (:meth:`World.plant_urdf
+        <lolgps_torch.sim.simulator.World.plant_urdf>`: the plant's link masses, inertias and
+        payload) under the gravity compensation the
         plant and the learner apply: the model built from the true plant, which an identified
         one can at best match (joint friction, sensor noise and an unknown delay left out, as
         in every model here; an arm compensated by itself and by the learner too is modelled
         with twice its own gravity)."""
         plant, learner = self.config.plant, float(self.config.world.compensate_gravity)
-        with probe_world(self.config) as (world, _):
-            text = world.plant_urdf() if isinstance(world, PegWorld) else self.arm.urdf_text
-        simulated = replace(self.arm, urdf_text=text)
+        simulated = replace(self.arm, urdf_text=self.sampler.worlds[0].plant_urdf())
         exact = ControlStep(simulated, self.config.world, self.device)
         if plant.gravity_compensation == "plant":  # the simulated body's own gravity
             own = (exact.urdf, 1.0 + learner, 0.0)
@@ -438,13 +312,14 @@ class PegTask:
 
     def identify_model(self, config: IdentifyConfig) -> ArmParameters | None:
         """Identify the arm from the transitions :meth:`record` kept and make :attr:`model` the
-        identified arm's (None, the model unchanged, before any transition, or with a warning
-        where no arm that can exist fits them). With a known
-        delay (``WorldConfig.known_delay``) each physics step of a transition is driven by the
-        command that :class:`ControlStep` has act there, from the state's action history; an
-        arm late by a delay the learner does not know is identified as one whose commands act
-        at once (:mod:`lolgps_torch.dynamics.identify`)."""
-        if not self._seen or self._seen[0].q0.shape[0] == 0:
+        identified arm's (:func:`~lolgps_torch.dynamics.identify.identify_arm`; None, the
+        model unchanged, before any transition, or with a warning where it is kept). With a
+        known delay (``WorldConfig.known_delay``) each physics step of a transition is driven
+        by the command that :class:`ControlStep` has act there, from the state's action
+        history; an arm late by a delay the learner does not know is identified as one whose
+        commands act at once (:mod:`lolgps_torch.dynamics.identify`)."""
+        data = self.transitions.data
+        if data is None:
             return None
         step = ControlStep(self.arm, self.config.world, device=self.device)
         urdf, world = step.urdf, self.config.world
@@ -453,21 +328,8 @@ class PegTask:
         balance = TorqueBalance(
             urdf, effort, world.dt, LINK_DAMPING, world.substeps, tuple(step.late)
         )
-        data, before = self._seen[0], self._identified
-        try:
-            params = identify(balance, data, config, before)
-        except NumericalError as error:  # the model as it was: planned and fitted with as before
-            warnings.warn(
-                f"the arm could not be identified ({error}); its model is kept", stacklevel=2
-            )
-            return None
-        kept = before or ArmParameters.urdf(urdf)
-        if misfit(balance, params, data, config) > misfit(balance, kept, data, config):
-            warnings.warn(
-                "the identified arm explains the transitions worse than the model it would "
-                "replace; that model is kept",
-                stacklevel=2,
-            )
+        params = identify_arm(balance, data, config, self._identified)
+        if params is None:
             return None
         self._identified = params
         identified = (
@@ -545,41 +407,6 @@ class PegTask:
         self.sampler.close()
         if self.pool is not None:
             self.pool.close()
-
-
-@contextmanager
-def probe_world(config: TaskConfig) -> Iterator[tuple[World, np.ndarray]]:
-    """A world of its own for probing the arm ``config`` describes before learning, its hole
-    at offset zero, and the start pose q0: the task's worlds and random streams stay
-    untouched. Closed on leaving the context."""
-    arm = load_task_arm(config)
-    geometry = place_task(arm, PegKinematics(arm), config.placement, config.world.depth)
-    world = build_world(config.sim, arm, config.world, geometry.nominal_mouth, config.plant)
-    try:
-        world.set_hole((0.0, 0.0))
-        yield world, np.asarray(geometry.q0, dtype=np.float64)
-    finally:
-        world.close()
-
-
-def measure_delay(config: TaskConfig, settings: DelayConfig) -> DelayEstimate:
-    """The command delay of the arm ``config`` describes, estimated from excitation rollouts at
-    its start pose (:mod:`lolgps_torch.sim.latency`) in a :func:`probe_world`."""
-    with probe_world(config) as (world, q0):
-        data = excite(world, q0, settings)
-    return estimate_delay(data, config.world.dt, config.world.substeps, settings.longest)
-
-
-def measure_gravity(config: TaskConfig, settings: GravityConfig) -> GravityEstimate:
-    """Whether the arm ``config`` describes compensates its commands for gravity, from
-    rollouts let go at its start pose (:mod:`lolgps_torch.sim.gravity`) in a
-    :func:`probe_world` without the learner's own compensation."""
-    world_config = replace(config.world, compensate_gravity=False)
-    with probe_world(replace(config, world=world_config)) as (world, q0):
-        moves = let_go(world, q0, settings)
-        inertia = world.effective_inertia(q0.tolist()).numpy()
-        arm = world.arm
-    return estimate_gravity(moves, arm, world_config, inertia)
 
 
 def task_config_from_dict(d: dict[str, Any]) -> TaskConfig:

@@ -40,6 +40,7 @@ from typing import Any
 
 import torch
 
+from lolgps_torch.arm_probes import fit_scale, scaled
 from lolgps_torch.cli import (
     ConfigFlags,
     Position,
@@ -80,7 +81,7 @@ from lolgps_torch.evaluation.square import SquareConfig, square_stream
 from lolgps_torch.lolgps import METHODS, StreamConfig, make_learner, method_config
 from lolgps_torch.progress import Bar
 from lolgps_torch.robot.placement import pinned
-from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled
+from lolgps_torch.task import PegTask, TaskConfig
 
 STREAM_FLAGS = ConfigFlags(
     StreamConfig(),

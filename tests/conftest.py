@@ -239,13 +239,14 @@ def check_published_arm(
     import numpy as np
     import torch
 
+    from lolgps_torch.arm_probes import fit_scale, scaled
     from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
     from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
     from lolgps_torch.robot.ik import follow, generic_rank, solve_ik_batch
     from lolgps_torch.robot.placement import PlacementConfig, reach
     from lolgps_torch.robot.validate import ArmWarning
     from lolgps_torch.sim.world import WorldConfig
-    from lolgps_torch.task import PegTask, TaskConfig, fit_scale, scaled
+    from lolgps_torch.task import PegTask, TaskConfig
 
     placement = PlacementConfig(positions=tuple(default_training_stream(AreaConfig(), 0)[0]))
     config = TaskConfig(

@@ -21,6 +21,7 @@ import pytest
 import torch
 from conftest import ScriptRun, check_published_arm
 
+from lolgps_torch.arm_probes import REFERENCE_REACH, fit_scale, scaled
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, default_training_stream
 from lolgps_torch.robot.arm import load_arm
@@ -38,14 +39,7 @@ from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
 from lolgps_torch.sim.pybullet_quiet import pb
 from lolgps_torch.sim.world import PegWorld, WorldConfig
-from lolgps_torch.task import (
-    REFERENCE_REACH,
-    PegTask,
-    TaskConfig,
-    fit_scale,
-    scaled,
-    task_config_from_dict,
-)
+from lolgps_torch.task import PegTask, TaskConfig, task_config_from_dict
 
 DATA = pybullet_data.getDataPath()
 XARM = os.path.join(DATA, "xarm/xarm6_robot.urdf")

@@ -9,17 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from lolgps_torch.dynamics.identify import (
-    ArmParameters,
-    IdentifyConfig,
-    TorqueBalance,
-    Transitions,
-    _solve,
-    identified_dynamics,
-    identify,
-    objective,
-    physical,
-)
+from lolgps_torch.dynamics.identify import TorqueBalance, _solve, identify, objective, physical
+from lolgps_torch.dynamics.parameters import ArmParameters, IdentifyConfig, identified_dynamics
+from lolgps_torch.dynamics.transitions import Transitions
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.rigid_body import ArmDynamics
@@ -316,7 +308,7 @@ def test_the_learner_reports_the_identified_arm_on_unseen_rollouts() -> None:
 
 
 def _which_free(T: int, edit: Callable[[torch.Tensor, PegTask], None]) -> list[list[bool]]:
-    """:meth:`PegTask.free_transitions` of three KUKA rollouts of T steps at rest at its start
+    """:func:`~lolgps_torch.dynamics.transitions.free_transitions` of three KUKA rollouts of T steps at rest at its start
     pose, the tip 5 cm above the table and the peg pointing down, as ``edit(x, task)`` leaves
     their states ``x [3, T+1, dX]``."""
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
@@ -333,7 +325,7 @@ def _which_free(T: int, edit: Callable[[torch.Tensor, PegTask], None]) -> list[l
         samples = Trajectories(
             x[:, :-1], u, zeros, zeros[:, 0], zeros[:, 0] > 0, x[:, -1], zeros[:, 0] > 0
         )
-        return task.free_transitions(samples)[1].tolist()
+        return task.transitions.free(samples)[1].tolist()
     finally:
         task.close()
 
@@ -375,17 +367,17 @@ def test_an_arm_that_cannot_exist_is_not_identified(arm: ArmSpec) -> None:
 
 def test_a_failed_identification_keeps_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
     """Where no arm that can exist fits the transitions, the task warns and keeps its model."""
-    import lolgps_torch.task as task_module
+    import lolgps_torch.dynamics.identify as identify_module
     from lolgps_torch.errors import NumericalError
 
     def fails(*_: object) -> ArmParameters:
         raise NumericalError("no arm")
 
-    monkeypatch.setattr(task_module, "identify", fails)
+    monkeypatch.setattr(identify_module, "identify", fails)
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
     try:
         data, _ = _rollouts(task.arm, PlantConfig(), rollouts=1)
-        task._seen = [data]
+        task.transitions.kept = data
         model = task.model
         with pytest.warns(UserWarning, match="could not be identified"):
             assert task.identify_model(IdentifyConfig()) is None
@@ -400,7 +392,7 @@ def test_an_identification_worse_than_the_model_it_would_replace_is_not_taken(
     """An identified arm that explains the transitions worse than the task's model (here a
     7 kg payload on the URDF's own arm) is refused with a warning; the next identification
     starts from the arm identified before."""
-    import lolgps_torch.task as task_module
+    import lolgps_torch.dynamics.identify as identify_module
 
     starts: list[ArmParameters | None] = []
 
@@ -414,16 +406,16 @@ def test_an_identification_worse_than_the_model_it_would_replace_is_not_taken(
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=1)
     try:
         data, _ = _rollouts(task.arm, PlantConfig(), rollouts=1)
-        task._seen = [data]
+        task.transitions.kept = data
         model = task.model
-        monkeypatch.setattr(task_module, "identify", heavy)
+        monkeypatch.setattr(identify_module, "identify", heavy)
         with pytest.warns(UserWarning, match="worse than the model it would replace"):
             assert task.identify_model(IdentifyConfig(noise_rounds=0)) is None
         assert task.model is model
-        monkeypatch.setattr(task_module, "identify", identify)
+        monkeypatch.setattr(identify_module, "identify", identify)
         found = task.identify_model(IdentifyConfig(noise_rounds=0))
         assert found is not None and task.model is not model
-        monkeypatch.setattr(task_module, "identify", heavy)
+        monkeypatch.setattr(identify_module, "identify", heavy)
         with pytest.warns(UserWarning, match="worse than the model it would replace"):
             task.identify_model(IdentifyConfig(noise_rounds=0))
         assert starts == [None, found]

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from conftest import ROOT, SMALL, finish_script, start_script
 
+from lolgps_torch.arm_probes import fit_scale, measure_delay
 from lolgps_torch.robot.arm import load_arm
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.sim.latency import (
@@ -22,7 +23,7 @@ from lolgps_torch.sim.latency import (
 )
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.world import PegWorld, WorldConfig
-from lolgps_torch.task import TaskConfig, fit_scale, measure_delay
+from lolgps_torch.task import TaskConfig
 
 KUKA = "robots/kuka_peg.urdf"
 FAR = (0.0, 2.0, -1.0)  # a hole out of the arm's way

@@ -36,7 +36,7 @@ from lolgps_torch.controllers import hold_controller, smoothed_noise
 from lolgps_torch.cost.l12 import to_quadratic
 from lolgps_torch.data.records import IdentifiedRecord, IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
-from lolgps_torch.dynamics.identify import ArmParameters, IdentifyConfig
+from lolgps_torch.dynamics.parameters import ArmParameters, IdentifyConfig
 from lolgps_torch.errors import NumericalError, check_fields
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import ArmModel, PegTask

@@ -23,10 +23,11 @@ import time
 from dataclasses import replace
 from typing import get_args
 
+from lolgps_torch.arm_probes import fit_scale, measure_delay
 from lolgps_torch.cli import run
 from lolgps_torch.sim.latency import DelayConfig
 from lolgps_torch.sim.plant import GravityCompensation, PlantConfig
-from lolgps_torch.task import TaskConfig, fit_scale, measure_delay
+from lolgps_torch.task import TaskConfig
 
 
 def parse_args() -> argparse.Namespace:

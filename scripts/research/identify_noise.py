@@ -40,13 +40,14 @@ import argparse
 import time
 from dataclasses import replace
 
+from lolgps_torch.arm_probes import probe_world
 from lolgps_torch.cli import allow_for_delay, detect_delay, run
-from lolgps_torch.dynamics.identify import ArmParameters, IdentifyConfig, identified_dynamics
+from lolgps_torch.dynamics.parameters import ArmParameters, IdentifyConfig, identified_dynamics
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
 from lolgps_torch.sim.model import ControlStep
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.world import PegWorld
-from lolgps_torch.task import PegTask, TaskConfig, probe_world
+from lolgps_torch.task import PegTask, TaskConfig
 
 
 def parse_args() -> argparse.Namespace:
