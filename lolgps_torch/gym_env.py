@@ -93,8 +93,11 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
     :param hole_range: without a reset option or ``hole_offset``, the hole offset is drawn
         uniformly in the square of this half-width (m) around the nominal position.
     :param ee_link: the end-effector link, detected when None (ignored with ``task_config``).
-    :param task_config: the whole :class:`TaskConfig` as a plain dict (``dataclasses.asdict``,
-        as a run's config.json holds it), URDF path included.
+    :param task_config: the whole :class:`TaskConfig`, or it as a plain dict
+        (``dataclasses.asdict``, as a run's config.json holds it), URDF path included: e.g.
+        the task a stream run learns, scaled to the arm, placed and allowing for what the
+        probes found, ``set_up(StreamSettings(task=...)).task``
+        (:mod:`lolgps_torch.commands.stream`).
     :param hole_offset: a fixed hole offset (dx, dy) (m) for every reset without options.
     :param normalize_actions: actions in ``[-1, 1]``, scaled by the arm's efforts.
 
@@ -108,17 +111,18 @@ class PegInsertionEnv(gym.Env[np.ndarray, np.ndarray]):
         urdf: str = DEFAULT_URDF,
         hole_range: float = 0.02,
         ee_link: str | None = None,
-        task_config: dict[str, Any] | None = None,
+        task_config: TaskConfig | dict[str, Any] | None = None,
         hole_offset: tuple[float, float] | list[float] | None = None,
         normalize_actions: bool = False,
     ) -> None:
         if task_config is not None and (urdf != DEFAULT_URDF or ee_link is not None):
             raise LolgpsError("give either task_config or urdf/ee_link, not both")
-        config = (
-            TaskConfig(urdf=urdf, ee_link=ee_link)
-            if task_config is None
-            else task_config_from_dict(task_config)
-        )
+        if task_config is None:
+            config = TaskConfig(urdf=urdf, ee_link=ee_link)
+        elif isinstance(task_config, TaskConfig):
+            config = task_config
+        else:
+            config = task_config_from_dict(task_config)
         self.task = PegTask(config, n_worlds=1)
         self.world = self.task.sampler.worlds[0]
         self.hole_range = hole_range

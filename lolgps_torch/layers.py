@@ -16,7 +16,10 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("data",),
     ("lolgps",),
     ("evaluation",),
-    ("cli", "sweep"),
+    ("cli",),
+    ("sweep",),
+    ("commands",),
+    ("__main__",),
 )
 PACKAGE = Path(__file__).resolve().parent
 

@@ -6,7 +6,7 @@ Each iteration samples N rollouts, fits the dynamics and takes the KL-constraine
 Per iteration it prints and appends to OUT/metrics.jsonl: mean cost, mean and best final
 tip distance, success rate, epsilon, eta and the time spent sampling, fitting and solving.
 OUT also gets config.json and arm.urdf (written once every flag, the folder and the hole's
-reachability are checked) and, at the end, summary.json. As in ``run_stream.py``, the arm's
+reachability are checked) and, at the end, summary.json. As in ``lolgps run``, the arm's
 gravity compensation is first checked and, where missing, made with the URDF's model
 (``--no-detect-gravity``; config.json's ``detected_gravity_compensation``), and its command
 delay estimated and allowed for (``--no-detect-delay``; config.json's ``detected_delay``).
@@ -25,14 +25,16 @@ from lolgps_torch.cli import (
     add_gravity_argument,
     add_task_arguments,
     add_workers_argument,
-    allow_for_delay,
     check_device,
-    compensate_gravity,
-    detect_delay,
-    detect_gravity,
     run,
     task_config,
     workers,
+)
+from lolgps_torch.commands.probes import (
+    allow_for_delay,
+    compensate_gravity,
+    detect_delay,
+    detect_gravity,
 )
 from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.data.run_folder import RunFolder, arm_urdf, as_stored, task_json

@@ -1,5 +1,5 @@
-"""Command-line plumbing: flags derived from config dataclasses, and run_stream's checks, all
-made before anything is written."""
+"""Command-line plumbing: flags derived from config dataclasses, the ``lolgps`` command and
+its run's checks, all made before anything is written."""
 
 from __future__ import annotations
 
@@ -9,15 +9,19 @@ import runpy
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import pytest
 
 from lolgps_torch.cli import ConfigFlags, read_offsets
+from lolgps_torch.commands import lolgps
+from lolgps_torch.commands import run as run_command
+from lolgps_torch.commands.stream import Plan, plan_stream
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 
-RUN_STREAM = Path(__file__).resolve().parents[1] / "scripts" / "run_stream.py"
+ROOT = Path(__file__).resolve().parents[1]
+RUN_STREAM = ROOT / "scripts" / "run_stream.py"
 
 
 @dataclass(frozen=True)
@@ -117,6 +121,11 @@ def test_offsets_must_be_finite_pairs(tmp_path: Path) -> None:
             read_offsets(str(path), "--conditions")
 
 
+def _plan(argv: list[str]) -> Plan:
+    """The plan of ``lolgps run ARGV``, written nowhere."""
+    return plan_stream(run_command.stream_settings(run_command.build_parser().parse_args(argv)))
+
+
 def _run_stream(
     argv: list[str], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> list[str]:
@@ -170,8 +179,7 @@ def test_resume_names_the_fields_that_differ(
 ) -> None:
     (tmp_path / "conditions.json").write_text("[[0, 0]]")
     argv = ["--conditions", str(tmp_path / "conditions.json"), "--out", str(tmp_path / "run")]
-    script: dict[str, Any] = runpy.run_path(str(RUN_STREAM))
-    plan = script["plan_run"](script["parse_args"](argv))
+    plan = _plan(argv)
     RunFolder(tmp_path / "run").start(plan.config, plan.urdf_text)
     before = sorted(p.name for p in (tmp_path / "run").iterdir())
     err = _run_stream([*argv, "--resume", "--max-iterations", "3"], monkeypatch, capsys)
@@ -206,7 +214,6 @@ def test_fuzzed_numeric_flags_are_accepted_or_refused_before_writing(tmp_path: P
     """Seeded random values of every numeric flag of run_stream.py: each is refused by
     argparse (exit 2) or by the configs' checks (LolgpsError), or planned, and nothing is
     written either way; never another exception."""
-    module = runpy.run_path(str(RUN_STREAM), run_name="fuzz")
     (tmp_path / "conditions.json").write_text("[[0.0, 0.0]]")
     base = ["--conditions", str(tmp_path / "conditions.json"), "--out", str(tmp_path / "run")]
     rng = __import__("random").Random(0)
@@ -214,7 +221,7 @@ def test_fuzzed_numeric_flags_are_accepted_or_refused_before_writing(tmp_path: P
     pairs = [(flag, value) for flag in NUMERIC_FLAGS for value in VALUES]
     for flag, value in rng.sample(pairs, 40):  # 40 different pairs of the 198
         try:
-            module["plan_run"](module["parse_args"]([*base, flag, value]))
+            _plan([*base, flag, value])
             outcomes["planned"] += 1
         except SystemExit as error:
             assert error.code == 2
@@ -243,3 +250,69 @@ def test_fuzzed_conditions_files_are_read_or_refused(tmp_path: Path) -> None:
             continue
         assert offsets and all(len(o) == 2 for o in offsets)
         assert all(abs(v) < float("inf") for o in offsets for v in o), text
+
+
+def _lolgps(
+    argv: list[str], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> tuple[int, str, str]:
+    """``lolgps ARGV`` in this process: its exit status, stdout and stderr."""
+    monkeypatch.setattr(sys, "argv", ["lolgps", *argv])
+    try:
+        lolgps.main()
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code if isinstance(exit_.code, int) else 1
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_lolgps_names_its_commands_and_refuses_others(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out, _ = _lolgps(["--help"], monkeypatch, capsys)
+    assert code == 0 and all(f"  {name} " in out for name in lolgps.COMMANDS)
+    assert list(lolgps.COMMANDS) == ["run", "evaluate", "sweep", "export", "render", "report"]
+    code, _, err = _lolgps(["train"], monkeypatch, capsys)
+    assert (
+        code == 2
+        and err
+        == "error: unknown command 'train': choose from " + ", ".join(lolgps.COMMANDS) + "\n"
+    )
+
+
+SCRIPTS = {
+    "run": "run_stream.py",
+    "evaluate": "evaluate.py",
+    "sweep": "sweep.py",
+    "export": "export_dataset.py",
+    "render": "render.py",
+    "report": "report.py",
+}
+
+
+@pytest.mark.parametrize("command", sorted(SCRIPTS))
+def test_each_command_takes_its_scripts_flags_and_says_them_in_its_help(
+    command: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``lolgps COMMAND --help`` is ``scripts/SCRIPT --help`` but for the name in the usage,
+    and holds the user documentation (the usage lines)."""
+    prog, script = f"lolgps {command}", SCRIPTS[command]
+    code, ours, _ = _lolgps([command, "--help"], monkeypatch, capsys)
+    monkeypatch.setattr(sys, "argv", [script, "--help"])
+    with pytest.raises(SystemExit) as exit_info:
+        runpy.run_path(str(ROOT / "scripts" / script), run_name="__main__")
+    theirs = capsys.readouterr().out
+    assert code == exit_info.value.code == 0
+    (our_usage, our_text), (their_usage, their_text) = (h.split("\n\n", 1) for h in (ours, theirs))
+    assert our_usage.replace(prog, "").split() == their_usage.replace(script, "").split()
+    assert our_text == their_text
+    assert f"    {prog} --" in ours and f"python scripts/{script}" in ours
+
+
+def test_lolgps_run_refuses_bad_input_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "conditions.json").write_text("[[0, 0]]")
+    argv = ["run", "--conditions", str(tmp_path / "conditions.json"), "--out", str(tmp_path)]
+    code, _, err = _lolgps([*argv, "--device", "banana"], monkeypatch, capsys)
+    assert code == 2 and err.startswith("error: --device banana: ") and err.count("\n") == 1

@@ -12,6 +12,7 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
+from lolgps_torch.commands.stream import StreamSettings, set_up
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.gym_env import (
     DEFAULT_URDF,
@@ -153,3 +154,23 @@ def test_reach_is_the_chain_length(normalized: gym.Env[np.ndarray, np.ndarray]) 
     assert isinstance(env, PegInsertionEnv)
     by_hand = 0.1575 + 0.2025 + 0.2045 + 0.2155 + 0.1845 + 0.2155 + 0.081 + 0.045 + 0.2 + 0.15
     assert reach(env.task.kinematics) == pytest.approx(by_hand, abs=1e-8)  # float32 URDF parse
+
+
+def test_the_env_takes_the_task_a_stream_run_learns() -> None:
+    """The stream's set-up (the library call under ``lolgps run``) gives the environment its
+    task: the hole and start pose placed for the stream's conditions."""
+    settings = StreamSettings(
+        task=TaskConfig(urdf=DEFAULT_URDF),
+        conditions=((0.0, 0.0), (0.01, -0.01)),
+        detect_gravity=False,
+        detect_delay=False,
+    )
+    stream = set_up(settings)
+    env = PegInsertionEnv(task_config=stream.task)
+    assert env.task.config == stream.task
+    assert env.spec_kwargs()["task_config"] == asdict(stream.task)
+    observation, info = env.reset(options={"hole_offset": stream.conditions[1]})
+    assert info["hole_offset"] == (0.01, -0.01)
+    assert stream.task.placement.q0 is not None
+    np.testing.assert_allclose(observation[env.task.layout.q], stream.task.placement.q0)
+    env.close()

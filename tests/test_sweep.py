@@ -29,7 +29,7 @@ def _sweep(tmp: Path, *argv: str) -> sweep.Sweep:
     own, extra = sweep.split_extra(argv)
     if "--out" not in own:
         own += ["--out", str(tmp / "out")]
-    return sweep.make_sweep(sweep.build_parser().parse_args(own), extra, str(ROOT / "scripts"))
+    return sweep.make_sweep(sweep.build_parser().parse_args(own), extra)
 
 
 # -- the grid and input checks -------------------------------------------------------------
@@ -130,13 +130,14 @@ def test_a_valid_sweep_resolves_paths_and_builds_commands(tmp_path: Path) -> Non
     ]
     assert Path(s.plan.out).is_absolute() and Path(s.cells[0].urdf).is_absolute()
     command = sweep.stream_command(s.cells[1], s.plan, resume=True)
-    assert command[0] == sys.executable and command[1].endswith("run_stream.py")
+    assert command[:4] == [sys.executable, "-m", "lolgps_torch", "run"]  # no script path
     out = command[command.index("--out") + 1]
     assert out == str(Path(s.plan.out) / "lolgps-kuka_peg-paper-seed1")
     assert command[-len(TINY) - 1 : -1] == TINY and command[-1] == "--resume"
-    assert "--stream" not in command  # the paper stream is run_stream's default
+    assert "--stream" not in command  # the paper stream is the run's default
     assert "--resume" not in sweep.stream_command(s.cells[0], s.plan, resume=False)
     evaluate = sweep.evaluate_command(s.cells[0], s.plan)
+    assert evaluate[:4] == [sys.executable, "-m", "lolgps_torch", "evaluate"]
     assert evaluate[-4:] == ["--run", str(Path(s.plan.out) / s.cells[0].name), "--workers", "1"]
 
 
@@ -273,7 +274,7 @@ def fake_sweep(tmp_path: Path) -> sweep.Sweep:
     (out / "lolgps-kuka-paper-seed2").mkdir()
     (out / "lolgps-kuka-paper-seed2" / "config.json").write_text("{}")
     _fake_run(out / "naive-kuka-paper-seed0", [False, True, False, False], [4, 4, 4, 4], 2)
-    plan = sweep.Plan(scripts="s", out=str(out), cwd=".", conditions=None, evaluate=True)
+    plan = sweep.Plan(out=str(out), cwd=".", conditions=None, evaluate=True)
     return sweep.Sweep(cells, plan, None, 2)
 
 
@@ -338,7 +339,7 @@ def test_variants_are_aggregated_apart(tmp_path: Path) -> None:
     cells = sweep.make_grid([0], ["lolgps"], ["/r/kuka.urdf"], ["paper"], ["a", "b"])
     _fake_run(out / "lolgps-kuka-paper-a-seed0", [True, True], [2, 2], 5)
     _fake_run(out / "lolgps-kuka-paper-b-seed0", [True, False], [2, 4], 5)
-    plan = sweep.Plan(scripts="s", out=str(out), cwd=".", conditions=None, evaluate=False)
+    plan = sweep.Plan(out=str(out), cwd=".", conditions=None, evaluate=False)
     rows = sweep.aggregate(cells, out)
     assert [(r["variant"], r["train_success_mean"], r["rollouts_mean"]) for r in rows] == [
         ("a", 1.0, 20.0),

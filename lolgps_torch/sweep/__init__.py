@@ -1,5 +1,5 @@
-"""Sweeps of ``run_stream.py`` over a grid of seeds x methods x arms x streams, on Ray
-(``scripts/sweep.py``; the command line is described in :mod:`lolgps_torch.sweep.grid`):
+"""Sweeps of ``lolgps run`` over a grid of seeds x methods x arms x streams, on Ray
+(``lolgps sweep``; the command line is described in :mod:`lolgps_torch.sweep.grid`):
 :mod:`~lolgps_torch.sweep.grid` parses and checks the grid and names its cells,
 :mod:`~lolgps_torch.sweep.cells` runs one cell inside a Ray task,
 :mod:`~lolgps_torch.sweep.run` runs the grid on Ray and is the command, and

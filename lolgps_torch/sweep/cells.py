@@ -1,6 +1,6 @@
 """One cell of a sweep, run inside a Ray task: what its folder still needs, the command lines
-of its scripts, their runs logged to the cell's sweep.log, and its wall time in
-sweep_cell.json."""
+of its ``lolgps`` commands (``python -m lolgps_torch``), their runs logged to the cell's
+sweep.log, and its wall time in sweep_cell.json."""
 
 from __future__ import annotations
 
@@ -33,14 +33,17 @@ def cell_state(folder: Path, evaluate: bool) -> str:
     return "resume" if run.config_path.is_file() else "new"
 
 
+COMMAND = (sys.executable, "-m", "lolgps_torch")  # ``lolgps`` in this interpreter
+
+
 def stream_command(cell: Cell, plan: Plan, resume: bool) -> list[str]:
-    """The ``run_stream.py`` command line of ``cell``.
+    """The ``lolgps run`` command line of ``cell``.
 
     :param cell: the cell
-    :param plan: the sweep's scripts, folder and pass-through flags
+    :param plan: the sweep's folder and pass-through flags
     :param resume: continue the run already in the cell's folder
     """
-    command = [sys.executable, os.path.join(plan.scripts, "run_stream.py")]
+    command = [*COMMAND, "run"]
     command += ["--urdf", cell.urdf, "--method", cell.method, "--seed", str(cell.seed)]
     command += ["--out", os.path.join(plan.out, cell.name), "--workers", "1"]  # a CPU a cell
     if cell.stream != "paper":
@@ -52,21 +55,20 @@ def stream_command(cell: Cell, plan: Plan, resume: bool) -> list[str]:
 
 
 def evaluate_command(cell: Cell, plan: Plan) -> list[str]:
-    """The ``evaluate.py`` command line of ``cell`` (one worker: the task holds one CPU).
+    """The ``lolgps evaluate`` command line of ``cell`` (one worker: the task holds one CPU).
 
     :param cell: the cell
-    :param plan: the sweep's scripts, folder and pass-through flags
+    :param plan: the sweep's folder and pass-through flags
     """
     run = os.path.join(plan.out, cell.name)
-    script = os.path.join(plan.scripts, "evaluate.py")
-    return [sys.executable, script, "--run", run, "--workers", "1", *plan.evaluate_flags]
+    return [*COMMAND, "evaluate", "--run", run, "--workers", "1", *plan.evaluate_flags]
 
 
 def error_line(stderr: str, returncode: int) -> str:
-    """A failed script's one-line reason: its last ``error:`` line, else its last line of
+    """A failed command's one-line reason: its last ``error:`` line, else its last line of
     stderr (a traceback's exception), else its exit status.
 
-    :param stderr: what the script wrote to stderr
+    :param stderr: what the command wrote to stderr
     :param returncode: its exit status (negative: killed by that signal)
     """
     lines = [line.strip() for line in stderr.splitlines() if line.strip()]
@@ -125,7 +127,7 @@ def execute_cell(cell: Cell, plan: Plan) -> Outcome:
     as subprocesses, and return how it ended. This is the body of the sweep's Ray task.
 
     :param cell: the cell
-    :param plan: the sweep's scripts, folder and pass-through flags
+    :param plan: the sweep's folder and pass-through flags
     """
     folder = Path(plan.out) / cell.name
     start = time.monotonic()

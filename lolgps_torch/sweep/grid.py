@@ -1,26 +1,29 @@
-"""Sweeps of ``run_stream.py`` over a grid of seeds x methods x arms x streams (x variants),
-on Ray.
+"""Sweeps of ``lolgps run`` over a grid of seeds x methods x arms x streams (x variants),
+on Ray, and their aggregate.
 
-    python scripts/sweep.py --seeds 0-2 --methods lolgps naive batch \\
-        --urdf robots/kuka_peg.urdf --out runs/sweep1 [--evaluate] [--address auto] \\
-        [--variants FILE] [-- extra run_stream flags]
+    lolgps sweep --seeds 0-2 --methods lolgps naive batch \\
+        --urdf robots/kuka_peg.urdf --out runs/sweep1 [--conditions FILE] [--evaluate] \\
+        [--address auto] [--num-cpus N] [--variants FILE] [-- extra run flags]
 
-Each cell of the grid is one ``run_stream.py`` run in its own folder under ``--out``, named
+Each cell of the grid is one ``lolgps run`` in its own folder under ``--out``, named
 ``<method>-<urdf stem>-<stream>-seed<S>``. ``--variants`` names a JSON object of named
-run_stream flag sets, ``{"payload": "--payload 1", "gmm": "--dynamics-prior gmm"}``: every
+run flag sets, ``{"payload": "--payload 1", "gmm": "--dynamics-prior gmm"}``: every
 cell then runs once per variant, with its flags after the common ones, in a folder named
-``<method>-<urdf stem>-<stream>-<variant>-seed<S>``. A Ray task (one CPU) runs the cell's
-scripts as subprocesses: ``run_stream.py`` (with ``--resume`` when the folder already holds config.json),
-then, with ``--evaluate``, ``evaluate.py --workers 1``. No PyBullet client crosses a process,
-and a cell folder is exactly a command-line run's, so it resumes the same way. The scripts'
-output goes to the cell's ``sweep.log``, and the wall time of its attempts to
-``sweep_cell.json``.
+``<method>-<urdf stem>-<stream>-<variant>-seed<S>``. Without --address a local Ray instance
+with --num-cpus CPUs (default: all) runs the cells; --address auto joins a running cluster.
+A Ray task (one CPU) runs the cell's commands in a Python process of their own
+(``python -m lolgps_torch``): ``run`` (with ``--resume`` when the folder already holds
+config.json), then, with ``--evaluate``, ``evaluate --workers 1``. A cell's run is thus a
+command-line run, with its own process state, and its folder resumes the same way; no
+PyBullet client crosses a process. The commands' output, the physics engine's included, goes
+to the cell's ``sweep.log``, and the wall time of its attempts to ``sweep_cell.json``.
 
 A failed cell is retried once and reported with its last ``error:`` line; the others carry
 on. Rerunning the same command skips finished cells (summary.json, and eval.json with
 ``--evaluate``) and resumes interrupted ones. At the end ``--out`` holds ``sweep.json`` (the
 grid and each cell's outcome) and the aggregate over seeds: ``summary.md``, ``summary.csv``
-and ``summary.png``.
+and ``summary.png``; the exit status is 1 if a cell finally failed. Needs Ray
+(``pip install 'lolgps_torch[ray]'``). The same command: ``python scripts/sweep.py``.
 """
 
 from __future__ import annotations
@@ -37,14 +40,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NoReturn
 
+from lolgps_torch.cli import DEFAULT_URDF
 from lolgps_torch.errors import LolgpsError
 
 METHODS = ("lolgps", "naive", "batch")
 STREAMS = (
     "paper",
     "square",
-)  # "paper": run_stream's default stream, no flag; others pass --stream X
-DEFAULT_URDF = "robots/kuka_peg.urdf"
+)  # "paper": ``lolgps run``'s default stream, no flag; others pass --stream X
 VARIANT_NAME = re.compile(r"[A-Za-z0-9_.+]+")  # a folder name's part, without '-'
 STREAM_FLAGS = ("--urdf", "--method", "--seed", "--out", "--resume", "--conditions", "--stream")
 EVALUATE_FLAGS = ("--run", "--workers")
@@ -75,19 +78,18 @@ class Cell:
 
 @dataclass(frozen=True)
 class Plan:
-    """What every cell's task needs: where the scripts are and what to pass them."""
+    """What every cell's task needs: where it runs and what to pass its commands."""
 
-    scripts: str  # folder holding run_stream.py and evaluate.py
     out: str  # absolute sweep folder; cell folders go under it
     cwd: str  # the subprocesses' working folder (the driver's, when the node has it)
     conditions: str | None
     evaluate: bool
     stream_flags: tuple[str, ...] = ()
     evaluate_flags: tuple[str, ...] = ()
-    variants: tuple[tuple[str, tuple[str, ...]], ...] = ()  # (name, run_stream flags)
+    variants: tuple[tuple[str, tuple[str, ...]], ...] = ()  # (name, run flags)
 
     def variant_flags(self, variant: str) -> tuple[str, ...]:
-        """The run_stream flags of the variant named ``variant`` (none for "")."""
+        """The run flags of the variant named ``variant`` (none for "")."""
         return dict(self.variants).get(variant, ())
 
 
@@ -156,7 +158,7 @@ def make_grid(
     fastest.
 
     :param seeds: run seeds
-    :param methods: run_stream methods, each one of :data:`METHODS`
+    :param methods: the run's methods, each one of :data:`METHODS`
     :param urdfs: URDF paths; their stems name the arms and must differ
     :param streams: stream names, each one of :data:`STREAMS`
     :param variants: the variants' names ("": none)
@@ -182,7 +184,7 @@ def make_grid(
 
 
 def split_extra(argv: Sequence[str]) -> tuple[list[str], list[str]]:
-    """The sweep's own arguments and the run_stream flags after the first ``--``.
+    """The sweep's own arguments and the run flags after the first ``--``.
 
     :param argv: the command line without the program name
     """
@@ -193,13 +195,13 @@ def split_extra(argv: Sequence[str]) -> tuple[list[str], list[str]]:
     return argv[:cut], argv[cut + 1 :]
 
 
-def check_flags(flags: Sequence[str], reserved: Sequence[str], script: str) -> None:
+def check_flags(flags: Sequence[str], reserved: Sequence[str], command: str) -> None:
     """Raise :class:`LolgpsError` if ``flags`` set one of the ``reserved`` flags, or an
     abbreviation of one, that the sweep sets itself.
 
-    :param flags: the flags passed through to ``script``
+    :param flags: the flags passed through to ``command``
     :param reserved: the flags the sweep sets per cell
-    :param script: the script's name, for the message
+    :param command: the command's name, for the message
     """
     for token in flags:
         name = token.split("=", 1)[0]
@@ -207,7 +209,7 @@ def check_flags(flags: Sequence[str], reserved: Sequence[str], script: str) -> N
             continue
         for flag in reserved:
             if flag.startswith(name):
-                raise LolgpsError(f"{token}: the sweep sets {flag} of {script} itself")
+                raise LolgpsError(f"{token}: the sweep sets {flag} of {command} itself")
 
 
 def check_urdf(path: str) -> str:
@@ -243,7 +245,7 @@ def check_conditions(path: str | None) -> str | None:
 
 
 def read_variants(path: str | None) -> tuple[tuple[str, tuple[str, ...]], ...]:
-    """The named run_stream flag sets of a ``--variants`` file (none for None): a non-empty
+    """The named run flag sets of a ``--variants`` file (none for None): a non-empty
     JSON object of names (letters, digits, ``_ . +``) to flag strings, none of which sets a
     flag the sweep sets itself.
 
@@ -270,7 +272,7 @@ def read_variants(path: str | None) -> tuple[tuple[str, tuple[str, ...]], ...]:
             split = tuple(shlex.split(flags))
         except ValueError as exc:
             raise LolgpsError(f"--variants {path}: {name}: {exc}") from None
-        check_flags(split, STREAM_FLAGS, "run_stream.py")
+        check_flags(split, STREAM_FLAGS, "lolgps run")
         variants.append((name, split))
     return tuple(variants)
 
@@ -311,18 +313,12 @@ def check_address(address: str | None) -> None:
         raise LolgpsError(f"--address {address}: no Ray head answers ({exc})") from None
 
 
-def default_scripts() -> str:
-    """The repository's ``scripts`` folder, next to this package."""
-    return str(Path(__file__).resolve().parents[2] / "scripts")
-
-
-def make_sweep(args: argparse.Namespace, extra: Sequence[str], scripts: str) -> Sweep:
+def make_sweep(args: argparse.Namespace, extra: Sequence[str]) -> Sweep:
     """Check every input of the sweep and return it; raise :class:`LolgpsError` on the first
     bad one, before any work.
 
     :param args: the parsed sweep arguments (see :func:`build_parser`)
-    :param extra: the run_stream flags after ``--``
-    :param scripts: the folder holding run_stream.py and evaluate.py
+    :param extra: the run flags after ``--``
     """
     seeds = parse_seeds(args.seeds)
     urdfs = [check_urdf(u) for u in args.urdf]
@@ -333,8 +329,8 @@ def make_sweep(args: argparse.Namespace, extra: Sequence[str], scripts: str) -> 
         evaluate_flags = shlex.split(args.evaluate_args or "")
     except ValueError as exc:
         raise LolgpsError(f"--evaluate-args {args.evaluate_args!r}: {exc}") from None
-    check_flags(extra, STREAM_FLAGS, "run_stream.py")
-    check_flags(evaluate_flags, EVALUATE_FLAGS, "evaluate.py")
+    check_flags(extra, STREAM_FLAGS, "lolgps run")
+    check_flags(evaluate_flags, EVALUATE_FLAGS, "lolgps evaluate")
     if evaluate_flags and not args.evaluate:
         raise LolgpsError("--evaluate-args needs --evaluate")
     if args.address is not None and args.num_cpus is not None:
@@ -343,12 +339,8 @@ def make_sweep(args: argparse.Namespace, extra: Sequence[str], scripts: str) -> 
     num_cpus = args.num_cpus if args.num_cpus is not None else os.cpu_count() or 1
     if num_cpus < 1:
         raise LolgpsError(f"--num-cpus {num_cpus}: must be >= 1")
-    for script in ("run_stream.py", "evaluate.py"):
-        if not os.path.isfile(os.path.join(scripts, script)):
-            raise LolgpsError(f"{script} not found in {scripts}")
     conditions = check_conditions(args.conditions)
     plan = Plan(
-        scripts=os.path.abspath(scripts),
         out=check_out(args.out),
         cwd=os.getcwd(),
         conditions=conditions,
@@ -360,10 +352,11 @@ def make_sweep(args: argparse.Namespace, extra: Sequence[str], scripts: str) -> 
     return Sweep(cells, plan, args.address, num_cpus)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The sweep's command line (run_stream flags for every cell follow a ``--``)."""
+def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
+    """The sweep's command line (run flags for every cell follow a ``--``), ``prog`` its name
+    in the usage (default: the script's)."""
     parser = _Parser(
-        prog="sweep.py",
+        prog=prog,
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -378,20 +371,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--stream", nargs="+", choices=STREAMS, default=["paper"], help="streams (default paper)"
     )
     parser.add_argument("--out", required=True, help="sweep folder: one subfolder per cell")
-    parser.add_argument("--conditions", default=None, help="run_stream --conditions for all cells")
+    parser.add_argument("--conditions", default=None, help="the run's --conditions for all cells")
     parser.add_argument(
         "--variants",
         default=None,
-        help='JSON file of named run_stream flag sets, {"name": "--flag value", ...}: '
+        help='JSON file of named run flag sets, {"name": "--flag value", ...}: '
         "each cell runs once per variant",
     )
     parser.add_argument(
-        "--evaluate", action="store_true", help="evaluate each cell (evaluate.py --workers 1)"
+        "--evaluate", action="store_true", help="evaluate each cell (lolgps evaluate --workers 1)"
     )
     parser.add_argument(
         "--evaluate-args",
         default=None,
-        help="more evaluate.py flags in one string, e.g. --evaluate-args='--areas 3'",
+        help="more evaluate flags in one string, e.g. --evaluate-args='--areas 3'",
     )
     parser.add_argument(
         "--address", default=None, help="join this Ray cluster (e.g. auto) instead of a local one"

@@ -22,7 +22,6 @@ from lolgps_torch.sweep.grid import (
     Plan,
     Sweep,
     build_parser,
-    default_scripts,
     make_sweep,
     split_extra,
 )
@@ -130,11 +129,11 @@ def run_cells(
     ray: ModuleType, cells: Sequence[Cell], plan: Plan, progress: Progress
 ) -> list[Outcome]:
     """Run ``cells`` as Ray tasks of one CPU each, a failed one retried once, and return their
-    final outcomes in the order they ended. Ctrl-C cancels the tasks (and their scripts).
+    final outcomes in the order they ended. Ctrl-C cancels the tasks (and their commands).
 
     :param ray: the ray module, connected
     :param cells: the cells to run
-    :param plan: the sweep's scripts, folder and pass-through flags
+    :param plan: the sweep's folder and pass-through flags
     :param progress: the progress line
     """
     task = ray.remote(num_cpus=1, max_retries=0)(execute_cell)
@@ -188,18 +187,17 @@ def write_sweep_file(sweep: Sweep, outcomes: dict[Cell, Outcome]) -> None:
     write_json(Path(sweep.plan.out) / SWEEP_FILE, data)
 
 
-def main(argv: Sequence[str], scripts: str | None = None) -> int:
+def main(argv: Sequence[str] | None = None, prog: str | None = None) -> int:
     """Run a sweep from its command line and return the exit status: 0, or 1 if a cell
     finally failed. Bad input raises :class:`LolgpsError` before any work.
 
-    :param argv: the command line without the program name
-    :param scripts: the folder holding run_stream.py and evaluate.py (default: the
-        repository's, next to this package)
+    :param argv: the command line without the program name (default: this process's)
+    :param prog: the command's name in the usage (default: the script's)
     """
-    own, extra = split_extra(argv)
-    args = build_parser().parse_args(own)
+    own, extra = split_extra(sys.argv[1:] if argv is None else argv)
+    args = build_parser(prog).parse_args(own)
     ray = import_ray()
-    sweep = make_sweep(args, extra, scripts or default_scripts())
+    sweep = make_sweep(args, extra)
     out = Path(sweep.plan.out)
     states = {c: cell_state(out / c.name, sweep.plan.evaluate) for c in sweep.cells}
     outcomes = {c: Outcome(c, "skipped") for c, state in states.items() if state == "done"}

@@ -24,10 +24,10 @@ payload, as identified and as simulated (kg): what the transitions fix where the
 those links' scales can trade.
 
 With ``--action-delay`` the arm's commands act that late, and the learner allows for that
-delay as the stream's ``--known-delay`` makes it (:func:`lolgps_torch.cli.allow_for_delay`: the
+delay as the stream's ``--known-delay`` makes it (:func:`lolgps_torch.commands.probes.allow_for_delay`: the
 state carries the last actions, and from half a control step on the first controller is the
 hold rather than one planned on the model); with ``--detect-delay``, for the delay the stream
-estimates instead (:func:`lolgps_torch.cli.detect_delay`, none where it finds none).
+estimates instead (:func:`lolgps_torch.commands.probes.detect_delay`, none where it finds none).
 
 Noise on the observed joint velocities enters the torque balance through the accelerations
 ``(qd_1 - qd_0) / dt`` that multiply the inertial parameters: an error in the regressors,
@@ -41,7 +41,8 @@ import time
 from dataclasses import replace
 
 from lolgps_torch.arm_probes import probe_world
-from lolgps_torch.cli import allow_for_delay, detect_delay, run
+from lolgps_torch.cli import run
+from lolgps_torch.commands.probes import allow_for_delay, detect_delay
 from lolgps_torch.dynamics.parameters import ArmParameters, IdentifyConfig, identified_dynamics
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
 from lolgps_torch.sim.model import ControlStep
