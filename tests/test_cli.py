@@ -272,6 +272,8 @@ def test_lolgps_names_its_commands_and_refuses_others(
     code, out, _ = _lolgps(["--help"], monkeypatch, capsys)
     assert code == 0 and all(f"  {name} " in out for name in lolgps.COMMANDS)
     assert list(lolgps.COMMANDS) == ["run", "evaluate", "sweep", "export", "render", "report"]
+    code, _, err = _lolgps([], monkeypatch, capsys)
+    assert code == 2 and err.startswith("error: expected a command, one of run, ")
     code, _, err = _lolgps(["train"], monkeypatch, capsys)
     assert (
         code == 2

@@ -31,11 +31,13 @@ def usage() -> str:
 
 
 def dispatch(argv: Sequence[str]) -> None:
-    """Run the command ``argv`` names with the rest of ``argv``; ``--help`` (or nothing) prints
-    the usage; a command's non-zero status ends this process with it."""
-    if not argv or argv[0] in ("-h", "--help"):
+    """Run the command ``argv`` names with the rest of ``argv``; ``--help`` prints the usage;
+    a command's non-zero status ends this process with it."""
+    if argv and argv[0] in ("-h", "--help"):
         print(usage())
         return
+    if not argv:
+        raise LolgpsError(f"expected a command, one of {', '.join(COMMANDS)} (see --help)")
     name, *flags = argv
     if name not in COMMANDS:
         raise LolgpsError(f"unknown command {name!r}: choose from {', '.join(COMMANDS)}")

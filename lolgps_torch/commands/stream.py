@@ -217,25 +217,25 @@ def plan_stream(settings: StreamSettings) -> Plan:
     resumed = folder if settings.resume and folder.has_config() else None
     if resumed is None:
         check_folder(folder, {}, settings.resume)
-    stream = set_up(settings, resumed)
-    urdf_text = arm_urdf(stream.task)
+    setup = set_up(settings, resumed)
+    urdf_text = arm_urdf(setup.task)
     config = as_stored(
         {
             "method": settings.method,
             "seed": seed,
-            "task": task_json(stream.task, urdf_text),
-            "stream": asdict(stream.stream),
-            "conditions": [list(c) for c in stream.conditions],
-            "stages": stream.stages,
-            **stream.notes,
+            "task": task_json(setup.task, urdf_text),
+            "stream": asdict(setup.stream),
+            "conditions": [list(c) for c in setup.conditions],
+            "stages": setup.stages,
+            **setup.notes,
         }
     )
-    task = stream.task
+    task = setup.task
     if settings.resume:
         check_folder(folder, config, settings.resume)
         task = folder.task_config(config["task"])
     return Plan(
-        folder, config, urdf_text, settings.method, stream.stream, task, stream.conditions, device
+        folder, config, urdf_text, settings.method, setup.stream, task, setup.conditions, device
     )
 
 
