@@ -271,7 +271,7 @@ class PegTask:
 
     def record(self, samples: Trajectories) -> None:
         """Keep the free transitions of ``samples`` for :meth:`identify_model`
-        (:meth:`TransitionStore.record <lolgps_torch.dynamics.transitions.TransitionStore.record>`)."""
+        (:meth:`~lolgps_torch.dynamics.transitions.TransitionStore.record`)."""
         self.transitions.record(samples)
 
     def one_step_errors(self, samples: Trajectories) -> tuple[float, float, float, int]:

@@ -9,8 +9,6 @@ import ast
 import re
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -117,10 +115,5 @@ def test_the_long_modules_say_why() -> None:
         assert LONG_MODULES[module] in docstring and f"{MODULE_LINES} lines" in docstring
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="over 450 lines: task.py, cli.py, robot/arm.py, robot/placement.py, "
-    "dynamics/identify.py, sim/simulator.py",
-)
 def test_every_module_has_at_most_450_lines() -> None:
     assert long_modules() == []

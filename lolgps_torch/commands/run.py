@@ -72,6 +72,7 @@ STREAM_FLAGS = ConfigFlags(
         "guard-hover": ("policy.guard_hover",),
         "guard-hover-time": ("policy.guard_hover_time",),
         "guard-limit": ("policy.guard_limit",),
+        "guard-position": ("policy.guard_position",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),
         "dynamics-prior": ("local.dynamics.prior",),

@@ -43,11 +43,17 @@ A derived limit is never faster than those arms allow a joint of the same lever.
 
 from __future__ import annotations
 
+import warnings
+import xml.etree.ElementTree as ET
+from collections.abc import Sequence
+from dataclasses import replace
+
 import torch
 from torch import Tensor
 
 from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.robot.validate import ArmWarning
 
 EFFORT_MARGIN = 3.0
 POSES = 1024
@@ -104,3 +110,42 @@ def derived_velocity(arm: ArmSpec) -> tuple[float, ...]:
     docstring states: ``min(TIP_SPEED / r_j, JOINT_SPEED)``."""
     lever = joint_levers(arm).clamp(min=TIP_SPEED / JOINT_SPEED)
     return tuple(float(v) for v in TIP_SPEED / lever)
+
+
+def with_derived_limits(
+    arm: ArmSpec, effort: Sequence[str], velocity: Sequence[str], path: str
+) -> ArmSpec:
+    """``arm`` with the torque limits of the joints ``effort`` and the velocity limits of the
+    joints ``velocity`` (each published as 0 or not at all) derived from the arm
+    (module docstring), in its URDF text too; one :class:`ArmWarning` per kind names the values
+    used."""
+    derived = {"effort": dict(zip(arm.joint_names, arm.effort, strict=True)),
+               "velocity": dict(zip(arm.joint_names, arm.velocity, strict=True))}  # fmt: skip
+    tree = ET.fromstring(arm.urdf_text)
+    kinds = (
+        ("effort", effort, derived_effort, "N m", f"{EFFORT_MARGIN:g} x the larger of the "
+         "joint's largest gravity torque and the torque that accelerates its load at g / reach"),
+        ("velocity", velocity, derived_velocity, "rad/s", f"the speed that moves the peg tip "
+         f"at {TIP_SPEED:g} m/s, at most {JOINT_SPEED:g} rad/s (or give --velocity-limit)"),
+    )  # fmt: skip
+    joints = {joint.get("name"): joint for joint in tree.findall("joint")}
+    for attr, names, derive, unit, how in kinds:
+        values = dict(zip(arm.joint_names, derive(arm), strict=True)) if names else {}
+        for name in names:
+            derived[attr][name] = values[name]
+            limit = joints[name].find("limit")
+            if limit is None:  # a continuous joint published without one
+                limit = ET.SubElement(joints[name], "limit")
+            limit.set(attr, repr(values[name]))
+            warnings.warn(
+                f"{path}: joint {name!r}: <limit> {attr} is not given (0); using "
+                f"{values[name]:.4g} {unit}, {how}; set {attr} to its real limit ({unit})",
+                ArmWarning,
+                stacklevel=3,
+            )
+    return replace(
+        arm,
+        urdf_text=ET.tostring(tree, encoding="unicode"),
+        effort=tuple(derived["effort"][n] for n in arm.joint_names),
+        velocity=tuple(derived["velocity"][n] for n in arm.joint_names),
+    )

@@ -7,15 +7,15 @@ batched inverse kinematics of :mod:`lolgps_torch.robot.ik`.
 Placement.  With R the arm's reach from its shoulder (:func:`reach`), the nominal hole mouth
 is tried at ``shoulder + (rho R cos a, rho R sin a, -eta R)`` for a grid of fractions
 ``(rho, eta)`` about ``(reach_fraction, mouth_below_shoulder)`` and azimuths a about the
-base's +x, nearest first (:func:`_candidates`): first as it is, then shifted by ``-c`` with
-``c`` the centre of the stream's positions (so that they straddle the spot).  Where none
-fits, heights further from the preferred one follow (``eta`` up to 0.9 R below the shoulder
-and 0.3 R above it: arms that hang from a torso, or reach up to a table), those whose targets
-lie nearest the sampled down-pointing tips first.  Where the grid has none
+base's +x, nearest first (:func:`~lolgps_torch.robot.spots.candidates`): first as it is, then
+shifted by ``-c`` with ``c`` the centre of the stream's positions (so that they straddle the
+spot).  Where none fits, heights further from the preferred one follow (``eta`` up to 0.9 R
+below the shoulder and 0.3 R above it: arms that hang from a torso, or reach up to a table),
+those whose targets lie nearest the sampled down-pointing tips first.  Where the grid has none
 (``place_task``'s ``spots``), mouths are placed about the sampled tips themselves
-(:func:`_cloud_candidates`), the start turned to every azimuth.  The first mouth
-at which the start pose and every position's hole floor are reachable with the peg pointing
-down, inside the joint limits' margin, *and* every floor is reached from the start pose by
+(:func:`~lolgps_torch.robot.spots.cloud_candidates`), the start turned to every azimuth.
+The first mouth at which the start pose and every position's hole floor are reachable with the
+peg pointing down, inside the joint limits' margin, *and* every floor is reached from the start pose by
 following the peg points along the straight line between them (:func:`follow`), never nearer
 a singular pose than ``dexterity R``, is kept.  The second condition is what a local
 controller can do: it moves the arm continuously from q0 and cannot flip an elbow or a wrist
@@ -37,27 +37,24 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.ik import follow, generic_rank, solve_ik, solve_ik_batch
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.spec import ArmSpec
+from lolgps_torch.robot.spots import (
+    FAR_HEIGHTS,
+    FAR_START_SCALES,
+    START_SCALES,
+    STEPS,
+    candidates,
+    cloud_candidates,
+    spread,
+)
 
 Position = tuple[float, float]
 Spots = Literal["grid", "sampled", "both"]
-# (rho, eta) offsets from the preferred fractions, and azimuths (degrees) about the base's +x,
-# tried by the placement
-_STEPS = (0.0, -0.1, 0.1, -0.2, 0.2, 0.3)
-# further height offsets (eta), tried once no spot of _STEPS fits: arms that hang from their
-# shoulder (an arm on a torso) or reach up to the table
-_FAR_HEIGHTS = (0.45, 0.6, 0.75, -0.3, -0.45)
-_AZIMUTHS = (0, 45, -45, 90, -90, 135, -135, 180)
-_START_SCALES = (1.0, 0.5)
-# and with them: the start lower still, for arms whose wrist keeps the peg pointing down over a
-# narrow band of heights only (example-robot-data's Talos arm: 0.05 m above the mouth, not 0.1)
-_FAR_START_SCALES = (1.0, 0.5, 0.25)
 _SAMPLES = 16384  # random poses for the down-pointing workspace
 _REACH_SAMPLES = 4096  # the first of them, for the reach
 _SCREEN = 0.1  # candidates are solved if every target is this near (x reach) a sampled tip
 _VERIFIED = 24  # candidates solved in one IK batch
 _CHUNKS = 4  # batches at most
 _RANK_POSES = 64  # down-pointing poses for the point Jacobian's generic rank
-_CLOUD_MOUTHS = 512  # sampled tips the last candidates are placed about
 _APART = 0.03  # (x reach) the last candidates verified differ by at least this much
 _CDIST_ENTRIES = 1 << 22  # distances computed at once in the screening
 
@@ -195,7 +192,8 @@ def place_task(
 
     :param depth: the hole's depth (m): the tip's target is that far below the mouth.
     :param spots: the candidates searched: the grid about the preferred spot, the spots about
-        the sampled tips (:func:`_cloud_candidates`), or both, in that order.
+        the sampled tips (:func:`~lolgps_torch.robot.spots.cloud_candidates`), or both, in
+        that order.
     """
     if spots not in ("grid", "sampled", "both"):
         raise LolgpsError(f"placement spots must be grid, sampled or both, got {spots!r}")
@@ -214,11 +212,12 @@ def place_task(
     search = _Search(arm, kin, config, floor, (cloud_q, cloud_tip), (radius, rank))
     found = None
     if spots != "sampled":
-        near_mouths, near_starts = _candidates(
-            shoulder, radius, positions, config, (_STEPS, _START_SCALES)
+        preferred = (config.reach_fraction, config.mouth_below_shoulder, config.start_offset)
+        near_mouths, near_starts = candidates(
+            shoulder, radius, positions, preferred, (STEPS, START_SCALES)
         )
-        far_mouths, far_starts = _candidates(
-            shoulder, radius, positions, config, (_FAR_HEIGHTS, _FAR_START_SCALES)
+        far_mouths, far_starts = candidates(
+            shoulder, radius, positions, preferred, (FAR_HEIGHTS, FAR_START_SCALES)
         )
         mouths = torch.cat([near_mouths, far_mouths])  # [C, 3]
         start_offsets = torch.cat([near_starts, far_starts])
@@ -231,10 +230,10 @@ def place_task(
             chunks += [group[i : i + _VERIFIED] for i in range(0, len(group), _VERIFIED)][:_CHUNKS]
         found = search.verify(chunks, mouths, start_offsets, tips, gap)
     if found is None and spots != "grid":  # about the sampled tips, wherever the arm points down
-        mouths, start_offsets = _cloud_candidates(cloud_tip, positions, depth, config)
+        mouths, start_offsets = cloud_candidates(cloud_tip, positions, depth, config.start_offset)
         tips, gap, score = search.screen(mouths, start_offsets)
         order = [int(c) for c in score.argsort() if score[c] <= _SCREEN * radius]
-        best = _spread(mouths, start_offsets, order, _APART * radius)
+        best = spread(mouths, start_offsets, order, _APART * radius, _CHUNKS * _VERIFIED)
         chunks = [best[i : i + _VERIFIED] for i in range(0, len(best), _VERIFIED)]
         found = search.verify(chunks, mouths, start_offsets, tips, gap)
     if found is not None:
@@ -404,92 +403,3 @@ def _cannot_point_down(arm: ArmSpec, radius: float) -> str:
         f"peg may point along the wrong axis of {arm.ee_link!r} (--peg-axis, now "
         f"{arm.peg_axis or 'carried by the URDF'}; or --ee-link)"
     )
-
-
-def _cloud_candidates(
-    cloud_tip: Tensor, positions: Tensor, depth: float, config: PlacementConfig
-) -> tuple[Tensor, Tensor]:
-    """Nominal mouths ``[C, 3]`` placed about the sampled down-pointing tips ``[P, 3]`` (the
-    stream's centre floor at a tip, at most :data:`_CLOUD_MOUTHS` of them), each with the start
-    offset turned to every azimuth of :data:`_AZIMUTHS` and scaled by every factor of
-    :data:`_FAR_START_SCALES` ``[C, 3]``: spots the grid of :func:`_candidates` misses, for an
-    arm that points the peg down only in a small or oddly placed part of its reach (one that
-    hangs from a torso beside it)."""
-    centre = (positions.min(dim=0).values + positions.max(dim=0).values) / 2
-    stride = max(1, math.ceil(cloud_tip.shape[0] / _CLOUD_MOUTHS))
-    spots = cloud_tip[::stride] - torch.nn.functional.pad(centre, (0, 1), value=-depth)
-    dx, dy, dz = config.start_offset
-    offsets = [
-        [
-            f * (math.cos(a) * dx - math.sin(a) * dy),
-            f * (math.sin(a) * dx + math.cos(a) * dy),
-            f * dz,
-        ]
-        for a in map(math.radians, _AZIMUTHS)
-        for f in _FAR_START_SCALES
-    ]
-    starts = torch.tensor(offsets, dtype=torch.float64, device=cloud_tip.device)
-    mouths = spots[:, None].expand(-1, len(starts), -1).reshape(-1, 3)
-    return mouths, starts.repeat(spots.shape[0], 1)
-
-
-def _spread(mouths: Tensor, starts: Tensor, order: list[int], apart: float) -> list[int]:
-    """The candidates of ``order`` whose mouth or start tip lies more than ``apart`` (m) from
-    those of every earlier one kept, at most :data:`_CHUNKS` batches of them."""
-    spots = torch.cat([mouths, mouths + starts], dim=-1)  # [C, 6]
-    kept: list[int] = []
-    for c in order:
-        if kept:
-            near = (spots[kept] - spots[c]).reshape(-1, 2, 3).norm(dim=-1).max(dim=-1).values
-            if bool((near <= apart).any()):
-                continue
-        kept.append(c)
-        if len(kept) == _CHUNKS * _VERIFIED:
-            break
-    return kept
-
-
-def _candidates(
-    shoulder: Tensor,
-    radius: float,
-    positions: Tensor,
-    config: PlacementConfig,
-    steps: tuple[tuple[float, ...], tuple[float, ...]],
-) -> tuple[Tensor, Tensor]:
-    """Nominal mouths ``[C, 3]`` to try, preferred first, and the start tip's offset from each
-    ``[C, 3]``.  A spot is ``shoulder + (rho R cos(a), rho R sin(a), -eta R)`` for azimuths a
-    about the base's +x and fractions (rho, eta) about the configured ones (eta offset by the
-    first of ``steps``); each is tried as
-    it is, then shifted so that the positions' centre lies on it.  The start offset is turned
-    by a (so that "back" points towards the base), and scaled by f, the second of ``steps``
-    (1, then 0.5 for arms too short to lift the peg that high); the nearer (a, rho, eta, f) to (0, config, 1), the
-    earlier."""
-    centre = torch.nn.functional.pad(
-        (positions.min(dim=0).values + positions.max(dim=0).values) / 2, (0, 1)
-    )
-    grid = sorted(
-        (abs(a) / 45 + abs(r) / 0.1 + abs(e) / 0.1 + (1 - f) / 0.25, a, r, e, f)
-        for a in _AZIMUTHS
-        for r in _STEPS
-        for e in steps[0]
-        for f in steps[1]
-        if 0.1 <= config.reach_fraction + r <= 0.95
-    )
-    mouths, starts = [], []
-    dx, dy, dz = config.start_offset
-    for _, a, r, e, f in grid:
-        rho, eta = config.reach_fraction + r, config.mouth_below_shoulder + e
-        c, s = math.cos(math.radians(a)), math.sin(math.radians(a))
-        spot = shoulder + torch.tensor(
-            [rho * radius * c, rho * radius * s, -eta * radius],
-            dtype=torch.float64,
-            device=shoulder.device,
-        )
-        start = torch.tensor(
-            [f * (c * dx - s * dy), f * (s * dx + c * dy), f * dz],
-            dtype=torch.float64,
-            device=shoulder.device,
-        )
-        mouths += [spot, spot - centre]
-        starts += [start, start]
-    return torch.stack(mouths), torch.stack(starts)
