@@ -1,5 +1,5 @@
 """The package's layers, bottom to top: a module imports only from its own package or from a
-lower layer (checked by tests/test_layers.py; drawn by scripts/research/import_graph.py)."""
+lower layer (checked by tests/test_layers.py)."""
 
 from __future__ import annotations
 

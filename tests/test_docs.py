@@ -1,5 +1,6 @@
 """The documents keep up with the repository: every script is named in scripts/README.md, every
-figure in docs/ is shown by a document and exists, every module of the package is named in
+research script makes a figure of the results or is run by a test, every figure in docs/ is
+shown by a document and exists, every module of the package is named in
 docs/ARCHITECTURE.md and nothing else there, the documents and the modules keep their sizes,
 and the README sets up within its first screen."""
 
@@ -18,6 +19,19 @@ def test_every_script_is_named_in_the_scripts_readme() -> None:
     assert scripts
     missing = [str(p) for p in scripts if f"`{p}" not in text]
     assert missing == []
+
+
+def test_every_research_script_makes_a_figure_of_the_results_or_is_run_by_a_test() -> None:
+    """A script stays in scripts/research/ while docs/RESULTS.md or docs/PERFORMANCE.md names it
+    (a figure there comes from it) or a test other than this one runs it."""
+    docs = "".join((ROOT / "docs" / name).read_text() for name in ("RESULTS.md", "PERFORMANCE.md"))
+    tests = "".join(
+        p.read_text() for p in sorted((ROOT / "tests").glob("*.py")) if p.name != "test_docs.py"
+    )
+    scripts = sorted((ROOT / "scripts" / "research").glob("*.py"))
+    assert scripts
+    named = (f"research/{p.stem}" in docs or p.name in docs or p.name in tests for p in scripts)
+    assert [p.name for p, ok in zip(scripts, named, strict=True) if not ok] == []
 
 
 def test_every_figure_in_docs_is_shown_and_every_shown_figure_exists() -> None:

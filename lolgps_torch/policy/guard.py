@@ -31,7 +31,7 @@ fitted to D_g's transitions, ``q-dot_{t+1} - q-dot_t ~ B u_t + c`` by least squa
 ``-beta B^-1`` in place of ``-beta M(q) / dt``, matched the arm only near the data: by the
 model, its step multiplied the speeds by up to 4.3 at the Panda's mean pose in D_g and by more
 than 8 at 90-100 % of poses within the joint limits, so it flung what it should have stopped;
-``scripts/research/brake_gain.py``.)
+``brake_gain.py``, a script since removed; see commit 9d82b2d.)
 """
 
 from __future__ import annotations

@@ -8,7 +8,8 @@ The commands come from their own generator (``DelayConfig.seed``), so the learne
 streams are untouched. The rollouts are short, so that the arm stays near q0, where the fit
 below is linear, also when the compensation misses a load: with 8 rollouts of 40 steps a
 payload of 0.5 kg that the URDF lacks, compensated by the URDF alone, sagged the arm far enough
-to hide any delay (``scripts/research/delay_estimate.py``, ``docs/RESULTS.md`` at c902895, section 8).
+to hide any delay (``delay_estimate.py``, a script since removed, at commit 9d82b2d;
+``docs/RESULTS.md`` at c902895, section 8).
 
 Fit: a delay of ``d = k H + r`` physics steps (``H`` per control step, ``0 <= r < H``) lets
 command ``u_{t-k}`` act for the last ``H - r`` physics steps of control step t and

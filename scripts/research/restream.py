@@ -14,7 +14,7 @@ the policy visits and up to ``--repairs`` while it misses). The labels' p_pre ar
 original stream's policy gave. Prints, per condition, the positions the
 policy reaches after its S-step, the repair rounds and the CPU seconds of the checked S-step;
 then the final policy's distances at every position and its fit on D_g in teacher standard
-deviations (``scripts/research/precision.py``'s ``fit``), its slope fit (the error of its
+deviations (the ``fit`` of ``precision.py``, a script removed after commit 9d82b2d), its slope fit (the error of its
 derivative along :func:`state_directions` against p_cur's ``K_t v``, in the same units, per
 window of ten steps) and the positions it reaches with the hole moved by ``--jitter`` mm along
 +x, -x, +y and -y (and, with ``--areas``, its success in each test area of
