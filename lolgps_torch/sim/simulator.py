@@ -5,7 +5,7 @@ world, whichever engine steps it (``TaskConfig.sim``: ``pybullet``, the default,
 - :class:`WorldConfig`: the world's settings, the same for every engine.
 - :class:`World`: one world with the arm, the table and the funnel hole. Its public methods are
   the interface (``set_hole``, ``reset``, ``step``, ``observe``, ``points``, ``tip_distance``,
-  ``effective_inertia``, ``joint_damping``, ``close``); it holds everything that does not
+  ``effective_inertia``, ``joint_damping``, ``plant_urdf``, ``close``); it holds everything that does not
   depend on the engine (the state vector, the command queue of a delayed plant, the sensor
   noise, the effort limits), and an engine supplies a few primitives: move the hole, set the
   joints, read them, the point frame's pose, the gravity compensation and one physics step.
