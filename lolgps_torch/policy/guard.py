@@ -198,25 +198,26 @@ class ArmBrake(Protocol):
 def within_limits(
     u: Tensor, x: Tensor, layout: StateLayout, arm: ArmBrake, share: float, margin: float
 ) -> Tensor:
-    """Actions ``u: [n, dU]`` at states ``x: [n, dX]`` (blocks as ``layout``), each row scaled
-    so that the arm model's joint speeds after the step keep within the arm's limits:
+    """Actions ``u: [n, dU]`` at states ``x: [n, dX]`` (blocks as ``layout``) changed so that
+    the arm model's joint speeds after the step keep within the arm's limits:
 
-        q-dot' = q-dot + a dt M(q)^-1 u,   a = max {a in [0, 1]: lo <= q-dot' <= hi}
-        hi_j = min(s v_j, max(0, (upper_j - m - q_j) / dt))
-        lo_j = max(-s v_j, min(0, (lower_j + m - q_j) / dt))
+        q-dot'(a) = q-dot + a dt M(q)^-1 u,   a = max {a in [0, 1]: lo <= q-dot'(a) <= hi}
+        hi_j = min(s v_j, (upper_j - m_j - q_j) / dt),  lo_j = max(-s v_j, (lower_j + m_j - q_j) / dt)
 
-    (v the velocity limits, s = ``share``, m = ``margin`` (rad) inside the position limits: a
-    joint may come to the bound within the step, and at or past it only stop or move back).
-    Where no such a exists (the speeds alone already leave the bounds), the row's action is
-    the torque ``M(q) (clip(q-dot, lo, hi) - q-dot) / dt`` that brings each joint's speed back
-    to its nearest bound within the step. The speed is checked at the end of the step, where
-    a torque held from rest is fastest; the model leaves out gravity (the arm compensates it),
-    Coriolis forces, damping and a command delay, which the share's headroom absorbs. Each row
-    is computed alone."""
+    (v the velocity limits, s = ``share``, ``m_j = min(margin, (upper_j - lower_j) / 4)`` (rad)
+    inside the position limits): the action is shortened along its own direction until no joint
+    would pass the share of its velocity limit or come nearer to a position limit than m within
+    the step. Where no share of it will do (a joint coasts towards a bound, or is past one and
+    must move back), the action is the torque ``M(q) (clip(q-dot'(1), lo, hi) - q-dot) / dt``
+    that gives each joint the speed the action would, clipped to its bounds. The speed is checked
+    at the end of the step, where a torque held from rest is fastest; the model leaves out
+    gravity (the arm compensates it), Coriolis forces, damping, contact and a command delay,
+    which the share's headroom and the margin absorb. Each row is computed alone."""
     q, qd = x[..., layout.q], x[..., layout.qd]
     cap = share * arm.velocity
-    hi = torch.minimum(cap, ((arm.upper - margin - q) / arm.dt).clamp(min=0.0))
-    lo = torch.maximum(-cap, ((arm.lower + margin - q) / arm.dt).clamp(max=0.0))
+    inside = torch.minimum(torch.full_like(arm.upper, margin), (arm.upper - arm.lower) / 4)
+    hi = torch.minimum(cap, (arm.upper - inside - q) / arm.dt)
+    lo = torch.maximum(-cap, (arm.lower + inside - q) / arm.dt)
     change = arm.speed_change(x, u)
     after = qd + change
     outside = ((after < lo) | (after > hi)).any(-1)
@@ -236,6 +237,6 @@ def within_limits(
     held[rows[feasible]] = a_hi[feasible, None] * u[rows[feasible]]
     if not bool(feasible.all()):
         stuck = rows[~feasible]
-        back = s[~feasible].clamp(lo[~feasible], hi[~feasible]) - s[~feasible]
-        held[stuck] = arm.torque_for(x[stuck], back)
+        clipped = torch.maximum(torch.minimum(after[stuck], hi[~feasible]), lo[~feasible])
+        held[stuck] = arm.torque_for(x[stuck], clipped - s[~feasible])
     return held
