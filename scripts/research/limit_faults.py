@@ -58,7 +58,7 @@ def main() -> None:
     try:
         velocity = task.model.velocity
         for k in chosen:
-            name = groups[k]["name"]
+            name = groups[k]["label"]
             for position in groups[k]["positions"][: args.per_group]:
                 rolled = task.sampler.rollout(policy_actor(policy, task.model), [tuple(position)])
                 reason = task.sampler.worlds[0].fault
