@@ -284,26 +284,27 @@ def _free(dU: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
 def test_actions_are_scaled_to_keep_the_predicted_speeds_and_positions_within_limits() -> None:
     coupled = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=F64)
     one = torch.ones(2, dtype=F64)
-    arm = InertiaArm(coupled, LAYOUT, one, -one, one.clone())  # v = 1 rad/s, q in [-1, 1] rad
+    arm = InertiaArm(coupled, LAYOUT, one, -10 * one, 10 * one)  # v = 1 rad/s, |q| <= 10 rad
     x = _states([[0.0, 0.0], [0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [0.0, 0.0]], [0.1] * 5)
-    x[4, LAYOUT.q] = torch.tensor([0.6, 0.0], dtype=F64)  # 0.3 rad from the bound at 1 - 0.1
+    x[4, LAYOUT.q] = torch.tensor([9.6, 0.0], dtype=F64)  # 0.3 rad from the bound at 10 - 0.1
     u = torch.tensor([[0.1, 0.1], [4.0, 0.0], [1.0, 0.0], [0.0, 0.0], [2.0, 0.0]], dtype=F64)
     out = within_limits(u, x, LAYOUT, arm, share=0.8, margin=0.1)
     after = x[:, LAYOUT.qd] + arm.speed_change(x, out)
     assert torch.equal(out[0], u[0])  # well within: untouched
-    for row, bound in ((1, 0.8), (2, 0.8), (4, 0.3)):  # scaled along u to the first bound met
+    # scaled along u to the first bound met: the speed share, or 0.3 rad to go in 3 steps
+    for row, bound in ((1, 0.8), (2, 0.8), (4, 0.1)):
         assert torch.allclose(out[row], out[row].norm() / u[row].norm() * u[row])
         assert float(after[row].abs().max()) == pytest.approx(bound)
     # row 3 coasts past 0.8 rad/s with no torque: braked back to the bound, the other joint kept
     assert torch.allclose(after[3], torch.tensor([0.8, 0.0], dtype=F64))
     # past the position bound a joint moves back: an action that does is kept, one that does
-    # not gives way to the torque that moves it back to the bound within the step
-    x[4, LAYOUT.q] = torch.tensor([0.95, 0.0], dtype=F64)
+    # not gives way to the torque that stops the arm, moving that joint back to the bound
+    x[4, LAYOUT.q] = torch.tensor([9.95, 0.0], dtype=F64)
     back = torch.tensor([[-0.2, 0.0]], dtype=F64)
     assert torch.equal(within_limits(back, x[4:], LAYOUT, arm, 0.8, 0.1), back)
     pushed = within_limits(-back, x[4:], LAYOUT, arm, 0.8, 0.1)
-    assert float(arm.speed_change(x[4:], pushed)[0, 0]) == pytest.approx(-0.05)
-    # a joint without limits is never scaled
+    assert float(arm.speed_change(x[4:], pushed)[0, 0]) == pytest.approx(-0.05 / 3)
+    assert float(arm.speed_change(x[4:], pushed)[0, 1]) == pytest.approx(0.0)  # the arm stops
     # a joint without limits is never scaled
     free = InertiaArm(coupled, LAYOUT, *_free(2))
     assert torch.equal(within_limits(u, x, LAYOUT, free, 0.8, 0.1), u)

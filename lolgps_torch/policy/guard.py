@@ -176,6 +176,9 @@ def guarded(
     return torch.maximum(torch.minimum(held, guard.torque), -guard.torque), closest, steered
 
 
+APPROACH_STEPS = 3  # a joint nears its position bound no faster than it would reach it in 3 steps
+
+
 class ArmBrake(Protocol):
     """The limits the guard keeps the arm within, and the arm model it brakes and predicts the
     arm by (:class:`lolgps_torch.sim.model.ControlStep`): the URDF's velocity limits and
@@ -202,22 +205,25 @@ def within_limits(
     the arm model's joint speeds after the step keep within the arm's limits:
 
         q-dot'(a) = q-dot + a dt M(q)^-1 u,   a = max {a in [0, 1]: lo <= q-dot'(a) <= hi}
-        hi_j = min(s v_j, (upper_j - m_j - q_j) / dt),  lo_j = max(-s v_j, (lower_j + m_j - q_j) / dt)
+        hi_j = min(s v_j, (upper_j - m_j - q_j) / (k dt)),  lo_j = max(-s v_j, (lower_j + m_j - q_j) / (k dt))
 
     (v the velocity limits, s = ``share``, ``m_j = min(margin, (upper_j - lower_j) / 4)`` (rad)
-    inside the position limits): the action is shortened along its own direction until no joint
-    would pass the share of its velocity limit or come nearer to a position limit than m within
-    the step. Where no share of it will do (a joint coasts towards a bound, or is past one and
-    must move back), the action is the torque ``M(q) (clip(q-dot'(1), lo, hi) - q-dot) / dt``
-    that gives each joint the speed the action would, clipped to its bounds. The speed is checked
+    inside the position limits, k = :data:`APPROACH_STEPS`): the action is shortened along its
+    own direction until no joint would pass the share of its velocity limit, or approach its
+    bound m inside a position limit faster than it would reach it in k steps. Where no share
+    of it will do (a joint coasts towards a bound, or is past one and must move back), the
+    action is the torque ``M(q) (clip(w, lo, hi) - q-dot) / dt``: with w the speeds the action
+    would give, ``q-dot'(1)``, each clipped to its bounds, or, once a joint is past its
+    position bound, w = 0: the whole arm stops, that joint moving back. The speed is checked
     at the end of the step, where a torque held from rest is fastest; the model leaves out
     gravity (the arm compensates it), Coriolis forces, damping, contact and a command delay,
     which the share's headroom and the margin absorb. Each row is computed alone."""
     q, qd = x[..., layout.q], x[..., layout.qd]
     cap = share * arm.velocity
     inside = torch.minimum(torch.full_like(arm.upper, margin), (arm.upper - arm.lower) / 4)
-    hi = torch.minimum(cap, (arm.upper - inside - q) / arm.dt)
-    lo = torch.maximum(-cap, (arm.lower + inside - q) / arm.dt)
+    ahead = APPROACH_STEPS * arm.dt
+    hi = torch.minimum(cap, (arm.upper - inside - q) / ahead)
+    lo = torch.maximum(-cap, (arm.lower + inside - q) / ahead)
     change = arm.speed_change(x, u)
     after = qd + change
     outside = ((after < lo) | (after > hi)).any(-1)
@@ -237,6 +243,11 @@ def within_limits(
     held[rows[feasible]] = a_hi[feasible, None] * u[rows[feasible]]
     if not bool(feasible.all()):
         stuck = rows[~feasible]
-        clipped = torch.maximum(torch.minimum(after[stuck], hi[~feasible]), lo[~feasible])
+        # past a position bound the whole arm stops, the joint moving back (contact, which the
+        # model leaves out, pushes a joint there while the action goes on); else every joint
+        # keeps the action's speed, clipped
+        past = ((q[stuck] > arm.upper - inside) | (q[stuck] < arm.lower + inside)).any(-1)
+        wanted = torch.where(past[:, None], torch.zeros_like(after[stuck]), after[stuck])
+        clipped = torch.maximum(torch.minimum(wanted, hi[~feasible]), lo[~feasible])
         held[stuck] = arm.torque_for(x[stuck], clipped - s[~feasible])
     return held
