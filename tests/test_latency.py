@@ -75,16 +75,17 @@ def test_the_delay_is_found_in_whole_physics_steps(arm: ArmSpec, plant: PlantCon
     assert sorted(estimate.relative_rss)[1] > 1.0
 
 
+@pytest.mark.parametrize("seed", [0, *(pytest.param(s, marks=pytest.mark.slow) for s in (1, 2, 3))])
 @pytest.mark.parametrize(("delay", "noise"), [(0.0, 0.001), (0.0, 0.002), (0.05, 0.001)])
-def test_sensor_noise_does_not_make_the_delay_late(delay: float, noise: float) -> None:
-    """At the stream's start pose, with sensor noise, for four noise seeds: the estimate is the
-    plant's delay. With the observed state in the fit (not its prediction from the commands)
-    the KUKA's estimate was one physics step late on most of these."""
+def test_sensor_noise_does_not_make_the_delay_late(delay: float, noise: float, seed: int) -> None:
+    """At the stream's start pose, with sensor noise, for four noise seeds (the first in the
+    default suite): the estimate is the plant's delay. With the observed state in the fit (not
+    its prediction from the commands) the KUKA's estimate was one physics step late on most of
+    these."""
     base, _ = fit_scale(TaskConfig(urdf=KUKA))
-    for seed in range(4):
-        plant = PlantConfig(action_delay=delay, obs_noise=noise, seed=seed)
-        estimate = measure_delay(replace(base, plant=plant), DelayConfig(seed=seed))
-        assert estimate.seconds == pytest.approx(delay), seed
+    plant = PlantConfig(action_delay=delay, obs_noise=noise, seed=seed)
+    estimate = measure_delay(replace(base, plant=plant), DelayConfig(seed=seed))
+    assert estimate.seconds == pytest.approx(delay)
 
 
 def test_a_stream_with_late_commands_finds_the_delay_and_learns(tmp_path: Path) -> None:
