@@ -438,12 +438,12 @@ def test_task_configs_check_their_fields(make: object, flag: str) -> None:
         make()
 
 
-@pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.parametrize("name", sorted(CORPUS) + sorted(MOUNTED))
 def test_published_arm_learns_the_default_stream(name: str, tmp_path: Path) -> None:
     """The main job with only ``--urdf`` (and the flags that pick an arm on a base or torso):
     the global policy succeeds at >= 7 of the 8 training positions and every local controller
-    ends within the success threshold. Minutes each."""
+    ends within the success threshold. Minutes each (an hour in all): marked long."""
     out = tmp_path / "run"
     urdf, _, (base, ee), _ = (
         MOUNTED[name] if name in MOUNTED else (CORPUS[name][0], 0, (None, None), 1)

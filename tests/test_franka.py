@@ -2,8 +2,8 @@
 protocol: pylibfranka talking to franky-sim (tests/franka_stand_in.py), each test with a
 server of its own in a private network namespace, stopped when the test's command ends.
 The stand-in's tests run apart from the default suite, its server stepping at 1 kHz in real
-time: the short ones marked ``franka`` (``python -m pytest -q -m franka``), the learning runs
-``slow``."""
+time: those of a few minutes marked ``franka`` (``python -m pytest -q -m franka``), the
+streams of two conditions ``long``."""
 
 from __future__ import annotations
 
@@ -275,7 +275,7 @@ def missed_share(output: str) -> float:
     return sum(int(m) for m, _ in counts) / sum(int(n) for _, n in counts)
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_learns_two_conditions(fr3: Path, tmp_path: Path) -> None:
     """A two-condition stream in free space: both learnt (the local controller's and the
     global policy's tips within the success threshold of the floor point), no fault, under
@@ -314,7 +314,7 @@ print(json.dumps({"before": "".join(before), "after": resumed.stdout + resumed.s
 """
 
 
-@pytest.mark.slow
+@pytest.mark.long
 def test_killed_mid_rollout_then_resumed(fr3: Path, tmp_path: Path) -> None:
     """The learner killed in the middle of the second condition's rollouts; --resume keeps
     the first condition as it was learnt and redoes the second: the summary holds both."""
