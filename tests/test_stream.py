@@ -81,6 +81,7 @@ def test_a_run_reads_back_at_the_hole_and_start_pose_it_was_placed_at(small_run:
         task.close()
 
 
+@pytest.mark.slow  # a second CI stream; test_kill_resume's resumed run also ends at its summary
 def test_same_seed_gives_same_summary(small_run: Path, tmp_path: Path) -> None:
     log = tmp_path / "again.log"
     process = start_script(ci_stream_command(tmp_path, tmp_path / "again"), log)

@@ -54,6 +54,7 @@ def kuka_task() -> Iterator[PegTask]:
     task.close()
 
 
+@pytest.mark.slow  # three conditions with the default S-step; the phases alone: the next test
 def test_a_condition_the_policy_already_does_costs_fewer_rollouts(
     kuka_task: PegTask, tmp_path: Path
 ) -> None:
