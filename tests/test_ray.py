@@ -127,6 +127,7 @@ def test_a_sweep_finishes_a_cell_retries_a_failing_one_and_a_rerun_skips_the_fin
     assert [c["status"] for c in recorded["cells"]] == ["skipped"]
 
 
+@pytest.mark.slow  # its actors' start-up on a loaded machine: a minute; the sweep above runs Ray
 def test_evaluation_on_ray_equals_the_process_pool(local_ray: None, tmp_path: Path) -> None:
     """``ray="local"`` with an instance running: its actors run the jobs, give the process
     pool's results, and the instance is left running."""
