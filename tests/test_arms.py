@@ -223,7 +223,13 @@ def _write(tmp: Path, name: str, text: str) -> str:
     return str(tmp / name)
 
 
-@pytest.mark.parametrize("name", sorted(CORPUS))
+def _slow(names: list[str], slow: set[str]) -> list[object]:
+    """``names`` as parameters, those in ``slow`` marked slow (the longest of a kind that the
+    others cover in the default suite)."""
+    return [pytest.param(n, marks=pytest.mark.slow) if n in slow else n for n in names]
+
+
+@pytest.mark.parametrize("name", _slow(sorted(CORPUS), {"rtb-px150", "rtb-wx250s"}))
 def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
     """Loaded as published (``package://`` meshes absent: warned, not refused), the kinematics
     agree with PyBullet, the hole is placed so that the whole default stream is reachable, and
@@ -232,7 +238,7 @@ def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
     check_published_arm(urdf, dof)
 
 
-@pytest.mark.parametrize("name", sorted(MOUNTED))
+@pytest.mark.parametrize("name", _slow(sorted(MOUNTED), {"maniskill-so100"}))
 def test_arm_on_a_base_or_torso_or_small_loads_places_and_iterates(name: str) -> None:
     """As the published arms above, with the arm picked by --base-link/--ee-link, the joints
     above and off it held, and the stream scaled to a small arm's reach."""

@@ -100,7 +100,13 @@ def _load_quietly(path: str | Path, ee_link: str | None = None) -> tuple[ArmSpec
     return arm, [str(w.message) for w in caught if issubclass(w.category, ArmWarning)]
 
 
-@pytest.mark.parametrize("name", sorted(PUBLISHED))
+@pytest.mark.parametrize(
+    "name",
+    [  # the two longest marked slow (5-DoF Trossen arms, as test_arms' WX200 in the default)
+        pytest.param(n, marks=pytest.mark.slow) if n in {"rtb-rx200", "rtb-vx300"} else n
+        for n in sorted(PUBLISHED)
+    ],
+)
 def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
     """As published, the end effector is found, the kinematics agree with PyBullet, the whole
     default stream is reachable from the placed hole, and one short iteration runs."""
