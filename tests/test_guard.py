@@ -160,11 +160,12 @@ class InertiaArm:
     def stopping(self, x: torch.Tensor, hover: torch.Tensor | None = None) -> torch.Tensor:
         return matmul_rows(x[..., self.layout.qd], self.inertia)
 
-    def speed_change(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return torch.linalg.solve(self.inertia, u[..., None])[..., 0]
+    def mass_matrix(self, x: torch.Tensor) -> torch.Tensor:
+        return self.inertia.expand(x.shape[0], *self.inertia.shape)
 
-    def torque_for(self, x: torch.Tensor, change: torch.Tensor) -> torch.Tensor:
-        return (self.inertia @ change[..., None])[..., 0]
+    def speed_change(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """``dt M^-1 u``: the joint speeds' change under ``u`` in one step."""
+        return torch.linalg.solve(self.inertia, u[..., None])[..., 0]
 
 
 UNIT = InertiaArm(torch.eye(2, dtype=F64))
@@ -288,7 +289,7 @@ def test_actions_are_scaled_to_keep_the_predicted_speeds_and_positions_within_li
     x = _states([[0.0, 0.0], [0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [0.0, 0.0]], [0.1] * 5)
     x[4, LAYOUT.q] = torch.tensor([9.6, 0.0], dtype=F64)  # 0.3 rad from the bound at 10 - 0.1
     u = torch.tensor([[0.1, 0.1], [4.0, 0.0], [1.0, 0.0], [0.0, 0.0], [2.0, 0.0]], dtype=F64)
-    out = within_limits(u, x, LAYOUT, arm, share=0.8, margin=0.1)
+    out = within_limits(u, x, LAYOUT, arm, arm.mass_matrix(x), share=0.8, margin=0.1)
     after = x[:, LAYOUT.qd] + arm.speed_change(x, out)
     assert torch.equal(out[0], u[0])  # well within: untouched
     # scaled along u to the first bound met: the speed share, or 0.3 rad to go in 3 steps
@@ -301,13 +302,15 @@ def test_actions_are_scaled_to_keep_the_predicted_speeds_and_positions_within_li
     # not gives way to the torque that stops the arm, moving that joint back to the bound
     x[4, LAYOUT.q] = torch.tensor([9.95, 0.0], dtype=F64)
     back = torch.tensor([[-0.2, 0.0]], dtype=F64)
-    assert torch.equal(within_limits(back, x[4:], LAYOUT, arm, 0.8, 0.1), back)
-    pushed = within_limits(-back, x[4:], LAYOUT, arm, 0.8, 0.1)
+    assert torch.equal(
+        within_limits(back, x[4:], LAYOUT, arm, arm.mass_matrix(x[4:]), 0.8, 0.1), back
+    )
+    pushed = within_limits(-back, x[4:], LAYOUT, arm, arm.mass_matrix(x[4:]), 0.8, 0.1)
     assert float(arm.speed_change(x[4:], pushed)[0, 0]) == pytest.approx(-0.05 / 3)
     assert float(arm.speed_change(x[4:], pushed)[0, 1]) == pytest.approx(0.0)  # the arm stops
     # a joint without limits is never scaled
     free = InertiaArm(coupled, LAYOUT, *_free(2))
-    assert torch.equal(within_limits(u, x, LAYOUT, free, 0.8, 0.1), u)
+    assert torch.equal(within_limits(u, x, LAYOUT, free, free.mass_matrix(x), 0.8, 0.1), u)
 
 
 def test_the_guard_keeps_a_flinging_policy_within_the_velocity_limits_in_pybullet() -> None:

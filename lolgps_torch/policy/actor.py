@@ -12,15 +12,22 @@ from lolgps_torch.policy.net import Acting, GaussianPolicy
 from lolgps_torch.sim.rollout import Actor, matmul_rows
 from lolgps_torch.state import StateLayout
 
+#: rad: the guard's prediction reuses a rollout's mass matrix until a joint has moved this far
+#: from the pose it was made at (the matrix changes by a few per cent; making it anew at every
+#: step nearly tripled a policy rollout's time)
+INERTIA_REUSE = 0.05
+
 
 @dataclass
 class PolicyActor:
     """``u_t = mu_theta(x_t) + shifted_t`` for the batch's rows ``rows`` (no noise when
     ``shifted`` is None), through the policy's guard (:func:`guarded`, braking by the arm's
-    model ``arm``, then :func:`within_limits` of the arm's limits), which remembers per row the tip's closest approach to its target in
-    this rollout (``closest``, m) and whether its brake steers it above the target
-    (``steering``), both grown to the rows seen and forgotten at t = 0; plain data, so
-    that it can be sent to a worker process. ``by_rows``: the row-wise form
+    model ``arm``, then :func:`within_limits` of the arm's limits), which remembers per row the
+    tip's closest approach to its target in this rollout (``closest``, m), whether its brake
+    steers it above the target (``steering``) and the arm's mass matrix at a recent pose
+    (``inertia`` at ``inertia_at``: made anew where a joint has moved more than
+    :data:`INERTIA_REUSE` from that pose), all grown to the rows seen and forgotten at t = 0;
+    plain data, so that it can be sent to a worker process. ``by_rows``: the row-wise form
     (:meth:`rowwise`). The policy's tensors, its guard and the state's layout are taken out of
     it once, when the actor is made (``acting``, ``guard``, ``layout``): a step evaluates the
     policy on one row, where looking them up took a quarter of its time."""
@@ -30,6 +37,8 @@ class PolicyActor:
     shifted: Tensor | None  # [N, T, dU]: chol(Sigma_pi) eps_t per rollout
     closest: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.float64))
     steering: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
+    inertia: Tensor = field(default_factory=lambda: torch.zeros(0, 0, 0, dtype=torch.float64))
+    inertia_at: Tensor = field(default_factory=lambda: torch.zeros(0, 0, dtype=torch.float64))
     by_rows: bool = False
     acting: Acting = field(init=False, repr=False)
     guard: Guard = field(init=False, repr=False)
@@ -47,6 +56,8 @@ class PolicyActor:
             self,
             closest=torch.zeros(0, dtype=torch.float64),
             steering=torch.zeros(0, dtype=torch.bool),
+            inertia=torch.zeros(0, 0, 0, dtype=torch.float64),
+            inertia_at=torch.zeros(0, 0, dtype=torch.float64),
             by_rows=True,
         )
 
@@ -56,15 +67,11 @@ class PolicyActor:
         u = u if self.shifted is None else u + self.shifted[rows, t]
         start, stop = rows.start or 0, rows.stop
         if stop > self.closest.shape[0]:
-            grown = torch.full((stop,), torch.inf, dtype=x.dtype, device=x.device)
-            grown[: self.closest.shape[0]] = self.closest
-            self.closest = grown
-            steering = torch.zeros(stop, dtype=torch.bool, device=x.device)
-            steering[: self.steering.shape[0]] = self.steering
-            self.steering = steering
+            self._grow(stop, x)
         if t == 0:
             self.closest[start:stop] = torch.inf
             self.steering[start:stop] = False
+            self.inertia_at[start:stop] = torch.nan
         u, self.closest[start:stop], self.steering[start:stop] = guarded(
             u, x, self.layout, self.closest[start:stop], self.steering[start:stop], self.guard,
             t, self.arm.stopping,
@@ -72,7 +79,34 @@ class PolicyActor:
         config = self.policy.config
         if not config.guard:
             return u
-        return within_limits(u, x, self.layout, self.arm, config.guard_limit, config.guard_position)
+        inertia = self._inertia(x, start, stop)
+        return within_limits(
+            u, x, self.layout, self.arm, inertia, config.guard_limit, config.guard_position
+        )
+
+    def _grow(self, stop: int, x: Tensor) -> None:
+        """The per-row memories grown to ``stop`` rows."""
+        dU, kept = self.layout.dU, self.closest.shape[0]
+        closest = torch.full((stop,), torch.inf, dtype=x.dtype, device=x.device)
+        closest[:kept] = self.closest
+        steering = torch.zeros(stop, dtype=torch.bool, device=x.device)
+        steering[:kept] = self.steering
+        inertia = torch.zeros(stop, dU, dU, dtype=x.dtype, device=x.device)
+        at = torch.full((stop, dU), torch.nan, dtype=x.dtype, device=x.device)
+        if kept:
+            inertia[:kept], at[:kept] = self.inertia, self.inertia_at
+        self.closest, self.steering, self.inertia, self.inertia_at = closest, steering, inertia, at
+
+    def _inertia(self, x: Tensor, start: int, stop: int) -> Tensor:
+        """The rows' mass matrices, made anew where a joint has moved more than
+        :data:`INERTIA_REUSE` since they were made (or at t = 0)."""
+        q = x[..., self.layout.q]
+        moved = ~((q - self.inertia_at[start:stop]).abs().amax(-1) <= INERTIA_REUSE)
+        if bool(moved.any()):
+            index = torch.arange(start, stop, device=x.device)[moved]
+            self.inertia[index] = self.arm.mass_matrix(x[moved])
+            self.inertia_at[index] = q[moved]
+        return self.inertia[start:stop]
 
 
 def policy_actor(policy: GaussianPolicy, arm: ArmBrake, noise: Tensor | None = None) -> Actor:

@@ -183,8 +183,8 @@ class ArmBrake(Protocol):
     """The limits the guard keeps the arm within, and the arm model it brakes and predicts the
     arm by (:class:`lolgps_torch.sim.model.ControlStep`): the URDF's velocity limits and
     position limits ``[dU]`` (-inf and inf where a joint has none), the control step ``dt``
-    (s), the brake's torque (:class:`Stopping`), the joint speeds' change a torque makes within
-    a step, ``dt M(q)^-1 u``, and its inverse."""
+    (s), the brake's torque (:class:`Stopping`) and the mass matrices ``M(q)`` of states
+    ``x: [n, dX]`` (``[n, dU, dU]``, each row computed alone)."""
 
     velocity: Tensor
     lower: Tensor
@@ -193,16 +193,21 @@ class ArmBrake(Protocol):
 
     def stopping(self, x: Tensor, hover: Tensor | None = None) -> Tensor: ...
 
-    def speed_change(self, x: Tensor, u: Tensor) -> Tensor: ...
-
-    def torque_for(self, x: Tensor, change: Tensor) -> Tensor: ...
+    def mass_matrix(self, x: Tensor) -> Tensor: ...
 
 
 def within_limits(
-    u: Tensor, x: Tensor, layout: StateLayout, arm: ArmBrake, share: float, margin: float
+    u: Tensor,
+    x: Tensor,
+    layout: StateLayout,
+    arm: ArmBrake,
+    inertia: Tensor,
+    share: float,
+    margin: float,
 ) -> Tensor:
     """Actions ``u: [n, dU]`` at states ``x: [n, dX]`` (blocks as ``layout``) changed so that
-    the arm model's joint speeds after the step keep within the arm's limits:
+    the arm model's joint speeds after the step keep within the arm's limits, with ``inertia``
+    the rows' mass matrices ``M(q)`` (``[n, dU, dU]``):
 
         q-dot'(a) = q-dot + a dt M(q)^-1 u,   a = max {a in [0, 1]: lo <= q-dot'(a) <= hi}
         hi_j = min(s v_j, (upper_j - m_j - q_j) / (k dt)),  lo_j = max(-s v_j, (lower_j + m_j - q_j) / (k dt))
@@ -224,7 +229,9 @@ def within_limits(
     ahead = APPROACH_STEPS * arm.dt
     hi = torch.minimum(cap, (arm.upper - inside - q) / ahead)
     lo = torch.maximum(-cap, (arm.lower + inside - q) / ahead)
-    change = arm.speed_change(x, u)
+    change = arm.dt * torch.stack(
+        [torch.linalg.solve(m, a) for m, a in zip(inertia, u, strict=True)]
+    )
     after = qd + change
     outside = ((after < lo) | (after > hi)).any(-1)
     if not bool(outside.any()):
@@ -249,5 +256,8 @@ def within_limits(
         past = ((q[stuck] > arm.upper - inside) | (q[stuck] < arm.lower + inside)).any(-1)
         wanted = torch.where(past[:, None], torch.zeros_like(after[stuck]), after[stuck])
         clipped = torch.maximum(torch.minimum(wanted, hi[~feasible]), lo[~feasible])
-        held[stuck] = arm.torque_for(x[stuck], clipped - s[~feasible])
+        back = clipped - s[~feasible]
+        held[stuck] = (
+            torch.stack([m @ b for m, b in zip(inertia[stuck], back, strict=True)]) / arm.dt
+        )
     return held

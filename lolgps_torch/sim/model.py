@@ -112,23 +112,11 @@ class ControlStep:
             rows.append((self.urdf.mass_matrix(q[None])[0] * qd).sum(-1))
         return torch.stack(rows) / self.config.dt
 
-    def speed_change(self, x: Tensor, u: Tensor) -> Tensor:
-        """The change of the joint speeds that actions ``u: [n, dU]`` make within one control
-        step from states ``x: [n, dX]`` by the URDF's model, ``dt M(q)^-1 u`` (``[n, dU]``;
-        gravity compensated, Coriolis and damping left out); each row computed alone."""
+    def mass_matrix(self, x: Tensor) -> Tensor:
+        """The URDF's mass matrices ``M(q)`` at states ``x: [n, dX]`` (``[n, dU, dU]``); each
+        row computed alone."""
         q = x[..., self.layout.q]
-        rows = [
-            torch.linalg.solve(self.urdf.mass_matrix(q[i : i + 1])[0], u[i]) for i in range(len(x))
-        ]
-        return self.config.dt * torch.stack(rows)
-
-    def torque_for(self, x: Tensor, change: Tensor) -> Tensor:
-        """The torque that changes the joint speeds of states ``x: [n, dX]`` by ``change:
-        [n, dU]`` within one control step by the URDF's model, ``M(q) change / dt`` (the
-        inverse of :meth:`speed_change`); each row computed alone."""
-        q = x[..., self.layout.q]
-        rows = [self.urdf.mass_matrix(q[i : i + 1])[0] @ change[i] for i in range(len(x))]
-        return torch.stack(rows) / self.config.dt
+        return torch.cat([self.urdf.mass_matrix(q[i : i + 1]) for i in range(len(x))])
 
     def _commands(self, x: Tensor, u: Tensor) -> Tensor:
         """``[u_t, u_{t-1}, ..., u_{t-h}]: [..., h+1, dU]`` from the state's action history."""
