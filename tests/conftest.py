@@ -46,9 +46,8 @@ CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
 # module -> the worker group its tests run in: those sharing the CI stream, and those on Ray
 GROUPS = {"test_kill_resume.py": "ci_stream", "test_stream.py": "ci_stream", "test_ray.py": "ray"}
 # the longest tests outside the groups, longest first (seconds each in a run of the whole suite
-# on the loaded 2-core machine: 34, 28, 24, 22, 21, 18, 17, 15, 15, 14, 13, 12 and less)
+# on the loaded 2-core machine: 28, 24, 22, 21, 18, 17, 15, 15, 14, 13, 12 and less)
 LONGEST = (
-    "test_learning.py::test_xarm_policy_keeps_both_positions_of_a_small_stream",
     "test_faults.py::test_a_numerical_failure_fails_its_condition_and_the_stream_goes_on",
     "test_faults.py::test_a_full_disk_stops_the_run_with_one_error_and_the_run_resumes",
     "test_mujoco.py::test_ci_stream_learns_in_mujoco",

@@ -94,6 +94,7 @@ def test_xarm_learns_the_nominal_hole(tmp_path: Path) -> None:
     assert records[-1]["success_rate"] >= 0.6
 
 
+@pytest.mark.slow  # the KUKA's CI-sized stream (tests/test_stream.py) learns a policy by default
 def test_xarm_policy_keeps_both_positions_of_a_small_stream(tmp_path: Path) -> None:
     """The global policy on another arm, CI-sized: the xArm6 learns two holes 0.057 m apart
     (two success phases each, S-steps of 300 Adam steps, not 1000) and its policy inserts the

@@ -1,7 +1,8 @@
 """On a local two-CPU Ray instance, one for the module: a CI-sized sweep (a cell finishes, a
 cell that fails is retried and reported, a rerun skips the finished cell) and an
 evaluation whose actors give the process pool's results; and, with a stand-in for the ray
-module, when a connection starts and stops an instance of its own."""
+module, when a connection starts and stops an instance of its own. The tests on the instance
+are marked slow (Ray's start-up)."""
 
 from __future__ import annotations
 
@@ -87,6 +88,7 @@ def conditions(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.mark.slow  # Ray's start-up and its workers': a minute or more on a loaded machine
 def test_a_sweep_finishes_a_cell_retries_a_failing_one_and_a_rerun_skips_the_finished(
     local_ray: None, conditions: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -127,7 +129,7 @@ def test_a_sweep_finishes_a_cell_retries_a_failing_one_and_a_rerun_skips_the_fin
     assert [c["status"] for c in recorded["cells"]] == ["skipped"]
 
 
-@pytest.mark.slow  # its actors' start-up on a loaded machine: a minute; the sweep above runs Ray
+@pytest.mark.slow  # its actors' start-up on a loaded machine: a minute
 def test_evaluation_on_ray_equals_the_process_pool(local_ray: None, tmp_path: Path) -> None:
     """``ray="local"`` with an instance running: its actors run the jobs, give the process
     pool's results, and the instance is left running."""
