@@ -229,7 +229,13 @@ def _slow(names: list[str], slow: set[str]) -> list[object]:
     return [pytest.param(n, marks=pytest.mark.slow) if n in slow else n for n in names]
 
 
-@pytest.mark.parametrize("name", _slow(sorted(CORPUS), {"rtb-px150", "rtb-wx250s"}))
+@pytest.mark.parametrize(
+    "name",
+    _slow(
+        sorted(CORPUS),
+        {"rtb-px150", "rtb-wx250s", "rtb-vx300s", "pybullet-kuka-iiwa", "pybullet-xarm6"},
+    ),
+)
 def test_published_arm_loads_places_the_stream_and_iterates(name: str) -> None:
     """Loaded as published (``package://`` meshes absent: warned, not refused), the kinematics
     agree with PyBullet, the hole is placed so that the whole default stream is reachable, and

@@ -93,6 +93,9 @@ def _one_error_line(run_script: ScriptRunner, urdf: Path) -> str:
     return errors[0]
 
 
+SLOW_PUBLISHED = {"rtb-rx200", "rtb-vx300", "airo-ur3e", "rtb-kr16", "pybullet-iiwa-vr-limits"}
+
+
 def _load_quietly(path: str | Path, ee_link: str | None = None) -> tuple[ArmSpec, list[str]]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ArmWarning)
@@ -102,8 +105,8 @@ def _load_quietly(path: str | Path, ee_link: str | None = None) -> tuple[ArmSpec
 
 @pytest.mark.parametrize(
     "name",
-    [  # the two longest marked slow (5-DoF Trossen arms, as test_arms' WX200 in the default)
-        pytest.param(n, marks=pytest.mark.slow) if n in {"rtb-rx200", "rtb-vx300"} else n
+    [  # slow: the 5-DoF Trossen arms (test_arms' WX200 runs by default), and one of each pair
+        pytest.param(n, marks=pytest.mark.slow) if n in SLOW_PUBLISHED else n
         for n in sorted(PUBLISHED)
     ],
 )
