@@ -7,8 +7,9 @@ The modules whose tests share an expensive fixture (``GROUPS``) each run on one 
 fixture is built once; a shared fixture is also built once per test run under a file lock
 (``shared_dir``), whichever worker asks first. (xdist's own ``--dist loadgroup`` does not group
 under pytest 9, whose node ids xdist 3.8 cannot suffix: the grouping is done here, by
-:func:`pytest_xdist_make_scheduler`.) The groups start first, then the longest tests
-(``LONGEST``), so that the short tests fill both workers' ends.
+:func:`pytest_xdist_make_scheduler`.) The stand-in Franka's learning run (``FIRST``, where
+selected) and the groups start first, then the longest tests (``LONGEST``), so that the short
+tests fill both workers' ends.
 """
 
 from __future__ import annotations
@@ -45,9 +46,18 @@ SMALL = [
 CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
 # module -> the worker group its tests run in: those sharing the CI stream, and those on Ray
 GROUPS = {"test_kill_resume.py": "ci_stream", "test_stream.py": "ci_stream", "test_ray.py": "ray"}
-# the longest tests outside the groups, longest first (seconds each in a run of the whole suite
+# before the groups where selected: the stand-in Franka's learning run (-m franka), minutes of
+# its server's real time
+FIRST = ("test_franka.py::test_learns_one_condition_then_evaluates_on_the_arm",)
+# the longest tests outside the groups, longest first: those of -m slow (the identification's
+# fits), then those of the default suite (seconds each in a run of the whole suite
 # on the loaded 2-core machine: 28, 24, 22, 21, 18, 17, 15, 15, 14, 13, 12 and less)
 LONGEST = (
+    "test_identify.py::test_the_step_residual_starts_from_the_torque_balances_estimate",
+    "test_identify.py::test_the_compensations_share_stays_between_the_two_models",
+    "test_identify.py::test_a_transition_the_model_does_not_describe_pulls_the_fit_by_little",
+    "test_identify.py::test_sensor_noise_biases_the_torque_balance_not_the_speed_residuals",
+    "test_identify.py::test_recovers_link_masses",
     "test_faults.py::test_a_numerical_failure_fails_its_condition_and_the_stream_goes_on",
     "test_faults.py::test_a_full_disk_stops_the_run_with_one_error_and_the_run_resumes",
     "test_mujoco.py::test_ci_stream_learns_in_mujoco",
@@ -72,12 +82,15 @@ def _group(nodeid: str) -> str | None:
 
 
 def _rank(item: pytest.Item) -> int:
-    """Where ``item`` starts: the groups first, then the longest tests in order, the rest."""
-    if _group(item.nodeid):
-        return 0
+    """Where ``item`` starts: the first ones, the groups, then the longest tests in order, the
+    rest."""
     name = item.nodeid.rsplit("/", 1)[-1]
+    if name.startswith(FIRST):
+        return 0
+    if _group(item.nodeid):
+        return 1
     return next(
-        (1 + i for i, long in enumerate(LONGEST) if name.startswith(long)), len(LONGEST) + 1
+        (2 + i for i, long in enumerate(LONGEST) if name.startswith(long)), len(LONGEST) + 2
     )
 
 
