@@ -36,8 +36,8 @@ def task() -> Iterator[PegTask]:
 
 
 def _tiny() -> StreamConfig:
-    """A small stream; the policy's rollouts without the guard, whose model of the arm at every
-    step took half the time, and which these faults do not concern."""
+    """A small stream; the policy's rollouts without the guard, which these faults do not
+    concern (its prediction by the arm's model took half their time)."""
     d = StreamConfig()
     return StreamConfig(
         max_iterations=3,
