@@ -36,13 +36,16 @@ def task() -> Iterator[PegTask]:
 
 
 def _tiny() -> StreamConfig:
-    """A small stream; the policy's rollouts without the guard, which these faults do not
-    concern (its prediction by the arm's model took half their time)."""
+    """A small stream: each condition from the hold (no plan on the model), one S-step a
+    condition (no repair or on-policy rounds), the policy's rollouts without the guard: none of
+    which these faults concern."""
     d = StreamConfig()
     return StreamConfig(
         max_iterations=3,
         success_phases=1,
-        local=LocalConfig(samples=2),
+        repairs=0,
+        onpolicy_rounds=0,
+        local=LocalConfig(samples=2, model_plans=0),
         policy=replace(d.policy, steps=30, guard=False),
     )
 
