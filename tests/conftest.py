@@ -73,7 +73,6 @@ LONGEST = (
     "test_workers.py::test_rollouts_are_the_same_for_one_and_two_workers",
     "test_plan.py::test_a_planned_start_worse_than_holding_still_is_dropped_for_the_hold",
     "test_latency.py::test_a_stream_with_late_commands_finds_the_delay_and_learns",
-    "test_wheel.py::test_the_installed_wheel_makes_and_resets_the_env",
 )
 
 

@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 CHECK = """
 import gymnasium as gym
@@ -30,6 +32,7 @@ def _pip(*args: str) -> None:
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 
+@pytest.mark.slow  # a wheel built and installed; .ci/run's wheel environment runs its commands
 def test_the_installed_wheel_makes_and_resets_the_env(tmp_path: Path) -> None:
     source = tmp_path / "source"  # a copy, so the build leaves nothing in the tree
     source.mkdir()
