@@ -293,7 +293,7 @@ def test_the_learner_reports_the_identified_arm_on_unseen_rollouts() -> None:
 
     plant = PlantConfig(payload=1.0, gravity_compensation="model", limits="off")
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf", plant=plant), n_worlds=5)
-    config = LocalConfig(identify=True)
+    config = LocalConfig(identify=True, model_plans=0)  # from the hold: no plan needed
     reports: list[IdentifiedRecord] = []
     try:
         first = LocalLearner(task, (0.02, 0.02), config, 0, reports.append, 0)
