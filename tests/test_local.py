@@ -26,7 +26,7 @@ def test_a_step_that_raises_the_cost_is_retried_smaller_from_the_accepted_contro
     one, and p_pre would be fitted around the accepted samples."""
     task = PegTask(TaskConfig(urdf="robots/kuka_peg.urdf"), n_worlds=5)
     try:
-        learner = LocalLearner(task, (0.0, 0.0), LocalConfig(), seed=0)
+        learner = LocalLearner(task, (0.0, 0.0), LocalConfig(model_plans=0), seed=0)
         for i in range(2):
             iterate(learner, learner.p_cur, None, False, (0, i, 0.0))
         accepted = learner.accepted
