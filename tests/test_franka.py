@@ -314,7 +314,7 @@ print(json.dumps({"before": "".join(before), "after": resumed.stdout + resumed.s
 """
 
 
-@pytest.mark.long
+@pytest.mark.franka
 def test_killed_mid_rollout_then_resumed(fr3: Path, tmp_path: Path) -> None:
     """The learner killed in the middle of the second condition's rollouts; --resume keeps
     the first condition as it was learnt and redoes the second: the summary holds both."""
