@@ -11,7 +11,7 @@ trap 'rm -rf "$work"' EXIT
 cd "$work"
 export PATH="$venv/bin:$PATH" LOLGPS_WORKERS=1 OMP_NUM_THREADS=1
 package=$(python -c 'import lolgps_torch; print(lolgps_torch.__file__)')
-if [[ "$package" == "$root"/* ]]; then
+if [[ "$package" == "$root/lolgps_torch/"* ]]; then
     echo "lolgps_torch was imported from the checkout ($package), not from the wheel" >&2
     exit 1
 fi
