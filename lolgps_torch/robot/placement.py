@@ -27,7 +27,7 @@ gets the same hole and start pose.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Literal
 
 import torch
@@ -177,6 +177,10 @@ def _workspace(arm: ArmSpec, kin: PegKinematics) -> tuple[Tensor, float, Tensor,
     return shoulder, radius, q[down], tip[down]
 
 
+_PLACED: dict[tuple[object, ...], TaskGeometry] = {}  # place_task's answers in this process
+_PLACED_KEPT = 32
+
+
 def place_task(
     arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, depth: float, spots: Spots = "both"
 ) -> TaskGeometry:
@@ -194,7 +198,25 @@ def place_task(
     :param spots: the candidates searched: the grid about the preferred spot, the spots about
         the sampled tips (:func:`~lolgps_torch.robot.spots.cloud_candidates`), or both, in
         that order.
+
+    The search is a function of its arguments alone (its random poses and IK starts come from
+    generators of fixed seeds), so its answer is kept for the process: the tasks, run folders
+    and probes of one arm share one search (``kin`` is ``PegKinematics(arm)`` on its device;
+    where the arm's file lies places nothing, so a run folder's copy shares its original's).
     """
+    described = tuple(getattr(arm, f.name) for f in fields(arm) if f.name != "source_path")
+    key = (described, config, depth, spots, kin.device, torch.get_num_threads())
+    if key not in _PLACED:
+        if len(_PLACED) >= _PLACED_KEPT:
+            del _PLACED[next(iter(_PLACED))]
+        _PLACED[key] = _place(arm, kin, config, depth, spots)
+    return _PLACED[key]
+
+
+def _place(
+    arm: ArmSpec, kin: PegKinematics, config: PlacementConfig, depth: float, spots: Spots
+) -> TaskGeometry:
+    """:func:`place_task` without its memory."""
     if spots not in ("grid", "sampled", "both"):
         raise LolgpsError(f"placement spots must be grid, sampled or both, got {spots!r}")
     if config.q0 is not None and len(config.q0) != arm.dof:
