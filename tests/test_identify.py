@@ -135,7 +135,7 @@ def test_the_compensations_share_stays_between_the_two_models(
 @pytest.mark.parametrize(
     ("residual", "within", "rollouts", "compensation"),
     [
-        ("torque", 0.05, 16, "model"),
+        ("torque", 0.05, 8, "model"),
         pytest.param("speed", 0.2, 16, "model", marks=pytest.mark.slow),
         pytest.param("step", 0.05, 6, "model", marks=pytest.mark.slow),
         pytest.param("step", 0.05, 6, "plant", marks=pytest.mark.slow),
