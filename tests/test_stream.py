@@ -141,24 +141,6 @@ def test_trace_policy_prints_rollout_and_fit_per_condition(
     assert bad.code == 2 and bad.err.strip() == "error: --steps must lie in [0, 100), got [100]"
 
 
-def test_row_weights_splits_the_s_step_weight_by_window(
-    small_run: Path, run_script: Callable[..., ScriptRun]
-) -> None:
-    """Per window, the shares under eq. 8 sum to one, and balanced every row weighs the same:
-    each of 4 windows of 25 steps carries a quarter."""
-    cmd = ["scripts/research/row_weights.py", str(small_run / "run")]
-    result = run_script(*cmd, "--width", "25")
-    assert result.code == 0, result.err[-2000:]
-    lines = result.out.strip().splitlines()
-    assert lines[1].split()[2:] == ["0", "25", "50", "75"]
-    traces, paper, balanced = ([float(v) for v in line.split()[-4:]] for line in lines[2:5])
-    assert min(traces) > 0.0
-    assert sum(paper) == pytest.approx(1.0, abs=0.02)
-    assert balanced == pytest.approx([0.25] * 4, abs=0.006)
-    bad = run_script(*cmd, "--width", "0")
-    assert bad.code == 2 and bad.err.strip() == "error: --width must be positive, got 0"
-
-
 def test_teachers_measures_each_teacher_and_its_nearest(
     small_run: Path, run_script: Callable[..., ScriptRun]
 ) -> None:

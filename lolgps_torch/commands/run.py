@@ -73,7 +73,6 @@ STREAM_FLAGS = ConfigFlags(
         "guard-hover-time": ("policy.guard_hover_time",),
         "guard-limit": ("policy.guard_limit",),
         "guard-position": ("policy.guard_position",),
-        "no-balance-rows": ("policy.balance_rows",),
         "no-replay": ("replay",),
         "seed": ("seed", "policy.seed"),
         "dynamics-prior": ("local.dynamics.prior",),

@@ -77,10 +77,6 @@ class PolicyConfig:
         (:func:`~lolgps_torch.policy.guard.within_limits`).
     :param guard_position: that scaling also keeps each bounded joint this far (rad) inside
         its position limits.
-    :param balance_rows: weight each row's regression term in the S-step to the same trace
-        of precision, so that the rows where the teachers are surest (the arm's first steps,
-        held back by the speed cost) do not take the fit from the alignment over the hole
-        (docs/ALGORITHM.md section 7). Off (--no-balance-rows): eq. 8 as it stands.
     :param adam_dtype: floating type of the S-step's Adam loop (net copy, whitened states,
         scaled targets); the policy itself stays float64. float32 takes a third less loop
         time and reached as many positions over 38 paired runs, but fewer on the published
@@ -108,7 +104,6 @@ class PolicyConfig:
     guard_hover_time: float = 1.0
     guard_limit: float = 0.8
     guard_position: float = 0.1
-    balance_rows: bool = True
 
     def __post_init__(self) -> None:
         check_fields(

@@ -175,11 +175,7 @@ class LoopRows(NamedTuple):
 
 
 def _loop_rows(
-    policy: GaussianPolicy,
-    batch: DistillBatch,
-    pre_weight: float,
-    dtype: torch.dtype,
-    balance: bool = False,
+    policy: GaussianPolicy, batch: DistillBatch, pre_weight: float, dtype: torch.dtype
 ) -> LoopRows:
     """The batch in the net's own units, its two quadratic terms combined into one.
 
@@ -193,9 +189,7 @@ def _loop_rows(
         ``Q = A + lambda B``, ``m = Q^-1 (A a + lambda B b)``
 
     (expand both sides with ``Q m = A a + lambda B b``), so the loop evaluates one quadratic
-    form per row instead of two. With ``balance`` each row's ``Q`` and constant are then
-    weighted by ``w = mean_k tr Q_k / tr Q`` (:func:`distill`). Computed in float64 and then
-    rounded to ``dtype``: every
+    form per row instead of two. Computed in float64 and then rounded to ``dtype``: every
     field is O(1) (the whitening resolves 1e-7 of a state's spread in float32,
     sub-micrometre for the peg)."""
     scale = policy.u_scale
@@ -209,10 +203,6 @@ def _loop_rows(
     m = torch.linalg.solve(Q, (A @ a.unsqueeze(-1) + pre_weight * B @ b.unsqueeze(-1)))
     m = m.squeeze(-1)
     constant = 0.5 * (_quadratic(a - m, A) + pre_weight * _quadratic(b - m, B))
-    if balance:
-        trace = Q.diagonal(dim1=-2, dim2=-1).sum(-1)
-        weight = trace.mean() / trace
-        Q, constant = Q * weight[:, None, None], constant * weight
     packed = torch.cat([z, m, Q.flatten(1)], dim=1).to(dtype)
     return LoopRows(packed, constant)
 
@@ -261,18 +251,7 @@ def distill(
     config: PolicyConfig | None = None,
     generator: torch.Generator | None = None,
 ) -> list[float]:
-    """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8), by default
-    with its rows balanced (``config.balance_rows``):
-
-        ``L_bal = 1/M sum_m [w_m q_m(theta) + c_m]``,   ``w_m = (1/M sum_k tr Q_k) / tr Q_m``,
-
-    where ``q_m`` is row m's precision-weighted regression term (:func:`_row_quadratics`), ``c_m``
-    its theta-free part and ``Q_m = P_cur + lambda has_pre P_pre`` in the net's output units
-    (so that ``w`` does not depend on the torque units). Each row keeps the shape of its
-    teachers' precision (which joints they are sure of) but weighs as much as any other row:
-    under eq. 8 as it stands, the first steps from rest, where the speed cost makes the teachers
-    surest, take up to 90 % of the loss, and the policy is fitted least where it must align the
-    peg over the hole (``scripts/research/row_weights.py``). ``Sigma_pi`` stays eq. 8's optimum.
+    """Fit ``policy`` to the batch by minimising :func:`kl_loss` (paper eq. 8).
 
     Steps: whitening, ``Sigma_pi`` and output scaling from the batch (:func:`set_statistics`);
     each row's constant part of the loss (:func:`_row_constants`); then ``config.steps``
@@ -285,7 +264,7 @@ def distill(
     one quadratic form per row, in the net's own units (:func:`_loop_rows`) and in
     ``config.adam_dtype``: a copy of the net in that type is trained and its weights are
     written back into the float64 policy. The loss
-    recorded per step is the full (balanced) loss of that minibatch. Marks the policy trained.
+    recorded per step is the full KL loss of that minibatch. Marks the policy trained.
     Deterministic for a given ``generator`` state.
 
     :param policy: the global policy, trained in place.
@@ -310,7 +289,7 @@ def distill(
     with intra_op_threads(config.num_threads):
         with torch.no_grad():
             constant = _row_constants(policy.covariance(), batch, config.pre_weight)  # checks P
-            rows = _loop_rows(policy, batch, config.pre_weight, dtype, config.balance_rows)
+            rows = _loop_rows(policy, batch, config.pre_weight, dtype)
             constant = constant + rows.constant
         for step, index in enumerate(draws):
             z, target, prec = rows.unpack(index, policy.dX, policy.dU)

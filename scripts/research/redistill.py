@@ -2,8 +2,7 @@
 
     python scripts/research/redistill.py --run DIR [--steps N] [--width W] [--batch-size B]
                                          [--lr LR] [--pre-weight W] [--jitter 0.004]
-                                         [--seed S] [--no-feedback] [--no-balance-rows]
-                                         [--out DIR2]
+                                         [--seed S] [--no-feedback] [--out DIR2]
 
 A fresh global policy is fitted (paper eq. 8) on the D_g of every condition in DIR/replay.h5,
 with the stored targets (and the run's weight on the p_pre term unless ``--pre-weight`` is
@@ -58,12 +57,6 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument(
         "--no-feedback", dest="feedback", action="store_false", help="the plain MLP head"
     )
-    parser.add_argument(
-        "--no-balance-rows",
-        dest="balance_rows",
-        action="store_false",
-        help="weight the rows by their teachers' precision alone (paper eq. 8 as it stands)",
-    )
     parser.add_argument("--out", default=None, help="folder to save the policy in")
     args = parser.parse_args()
     if args.steps < 1 or args.width < 1 or args.layers < 1 or args.batch_size < 1:
@@ -85,7 +78,6 @@ def policy_config(args: argparse.Namespace, loaded: LoadedRun) -> PolicyConfig:
         learning_rate=args.lr,
         seed=args.seed,
         feedback=args.feedback,
-        balance_rows=args.balance_rows,
     )
 
 
