@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from lolgps_torch.data.checkpoint import load_policy, save_policy
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
 from lolgps_torch.policy.guard import Guard, fit_guard, guarded, within_limits
 from lolgps_torch.sim.plant import PlantConfig
@@ -19,6 +20,7 @@ from lolgps_torch.sim.rollout import Rowwise, matmul_rows
 from lolgps_torch.sim.simulator import WorldConfig
 from lolgps_torch.state import StateLayout
 from lolgps_torch.task import PegTask, TaskConfig
+from lolgps_torch.types import LinearGaussian
 
 F64 = torch.float64
 NO_HOVER = torch.full((2,), torch.nan, dtype=F64)
@@ -333,5 +335,33 @@ def test_the_guard_keeps_a_flinging_policy_within_the_velocity_limits_in_pybulle
         assert not bool(kept.fault.any())
         peak = (kept.x[..., task.layout.qd].abs() / task.model.velocity).amax()
         assert 0.3 < float(peak) <= 0.8 * 1.05
+    finally:
+        task.close()
+
+
+def test_the_local_controllers_samples_are_kept_within_the_limits_in_pybullet() -> None:
+    """A local controller asking for the arm's whole effort: its samples trip the arm's reflex
+    on their first step; with the policy's limits (``PolicyConfig.limits``) they move at most
+    at the limit share, no reflex fires, and the samples record the actions the arm was sent."""
+    config = TaskConfig(urdf=str(ROOT / "robots" / "kuka_peg.urdf"), world=WorldConfig(T=8))
+    task = PegTask(config, n_worlds=2)
+    try:
+        T, dX, dU = 8, task.layout.dX, task.layout.dU
+        effort = torch.tensor(task.arm.effort, dtype=F64)
+        flinging = LinearGaussian(
+            torch.zeros(T, dU, dX, dtype=F64),
+            (effort * torch.tensor([1.0, -1.0] * 4, dtype=F64)[:dU]).expand(T, dU),
+            0.01 * torch.eye(dU, dtype=F64).expand(T, dU, dU),
+        )
+        local = LocalConfig(samples=2, model_plans=0)
+        flung = LocalLearner(task, (0.0, 0.0), local, seed=0).sample(flinging)
+        assert bool(flung.fault.all())
+        limits = PolicyConfig().limits()
+        assert limits == (0.8, 0.1) and PolicyConfig(guard=False).limits() is None
+        kept = LocalLearner(task, (0.0, 0.0), local, seed=0, limits=limits).sample(flinging)
+        assert not bool(kept.fault.any())
+        peak = (kept.x[..., task.layout.qd].abs() / task.model.velocity).amax()
+        assert 0.3 < float(peak) <= 0.8 * 1.05
+        assert float((kept.u - flinging.k).abs().amax()) > 0.5 * float(effort.min())
     finally:
         task.close()

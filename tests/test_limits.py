@@ -185,7 +185,8 @@ def test_a_ci_sized_run_learns_one_condition_within_the_limits(
     exploring sample may fault: a peg pressed onto the table beside the hole can slip faster
     than a joint may move, and the reflex stops it, as on a real arm."""
     out = tmp_path / "run"
-    flags = ("--distill-steps", "1000", "--out", str(out))  # a policy fitted as by default
+    # a policy fitted as by default, with its repair rounds while the condition is missed
+    flags = ("--distill-steps", "1000", "--repairs", "6", "--out", str(out))
     result = run_script("scripts/run_stream.py", *_one_condition(tmp_path, *flags))
     assert result.code == 0, result.err
     (entry,) = json.loads((out / "summary.json").read_text())["conditions"]
@@ -203,7 +204,8 @@ def test_faults_are_counted_and_the_run_goes_on(
     tmp_path: Path, run_script: Callable[..., ScriptRun]
 ) -> None:
     out = tmp_path / "run"
-    flags = ("--velocity-limit", "0.05", "--max-iterations", "2", "--out", str(out))
+    # without the guard, which keeps the samples within the limits too
+    flags = ("--velocity-limit", "0.05", "--max-iterations", "2", "--no-guard", "--out", str(out))
     result = run_script("scripts/run_stream.py", *_one_condition(tmp_path, *flags))
     assert result.code == 0, result.err
     (entry,) = json.loads((out / "summary.json").read_text())["conditions"]

@@ -74,9 +74,11 @@ class BatchLearner:
         """Learn every condition together; returns the summary entries."""
         if self.replay.conditions():
             raise LolgpsError(f"{self.folder.path} holds a finished batch GPS run")
-        cfg, task = self.config, self.task
+        cfg, task, limits = self.config, self.task, self.config.policy.limits()
         learners = [
-            LocalLearner(task, offset, cfg.local, condition_seed(cfg, m), self.log, m)
+            LocalLearner(
+                task, offset, cfg.local, condition_seed(cfg, m), self.log, m, limits=limits
+            )
             for m, offset in enumerate(conditions)
         ]
         priors = [prior_from_config(cfg.local.dynamics) for _ in conditions]

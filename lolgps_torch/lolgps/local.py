@@ -38,6 +38,7 @@ from lolgps_torch.data.records import IdentifiedRecord, IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.dynamics.parameters import ArmParameters, IdentifyConfig
 from lolgps_torch.errors import NumericalError, check_fields
+from lolgps_torch.policy.actor import LimitedActor
 from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import ArmModel, PegTask
 from lolgps_torch.trajopt import (
@@ -238,12 +239,15 @@ class LocalLearner:
         report: Report | None = None,
         condition: int = 0,
         planner: Planner = planned_controller,
+        limits: tuple[float, float] | None = None,
     ) -> None:
         """``report`` receives the arm identified for condition ``condition`` (with
         ``config.identify``), measured on the condition's first rollouts; ``planner`` gives
         :func:`planned_controller`'s result (with ``config.model_plans``),
-        computed here or ahead of time (:class:`~lolgps_torch.lolgps.plans.PlannedStarts`)."""
-        self.task, self.offset, self.config = task, offset, config
+        computed here or ahead of time (:class:`~lolgps_torch.lolgps.plans.PlannedStarts`);
+        with ``limits`` (share, margin) the samples' actions are kept within the arm's limits
+        as the policy's are (:class:`~lolgps_torch.policy.actor.LimitedActor`)."""
+        self.task, self.offset, self.config, self.limits = task, offset, config, limits
         self.generator = torch.Generator().manual_seed(seed)
         self.targets = task.targets([offset])[0]
         self.hold = self.p_cur = initial_controller(task, config)
@@ -271,12 +275,15 @@ class LocalLearner:
         self.accepted: Accepted | None = None
 
     def sample(self, p_act: LinearGaussian) -> Trajectories:
-        """N rollouts of ``p_act`` at this condition."""
+        """N rollouts of ``p_act`` at this condition (within the arm's limits, with
+        ``limits``)."""
         T, dU = self.task.T, self.task.layout.dU
         noise = smoothed_noise(
             self.config.samples, T, dU, self.config.noise_smoothing, self.generator
         ).to(self.task.device)
         actor = linear_gaussian_actor(p_act, noise)
+        if self.limits is not None:
+            actor = LimitedActor(actor, self.task.model, *self.limits)
         samples = self.task.sample(actor, [self.offset] * self.config.samples)
         if self.config.identify:
             if self.identified is not None and self.report is not None:  # once: unseen rollouts

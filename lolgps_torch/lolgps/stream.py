@@ -211,8 +211,9 @@ class StreamLearner:
         cfg, seed = self.config, condition_seed(self.config, index)
         counted = Counter(self.task.arm_rollouts)
         learner = LocalLearner(
-            self.task, offset, cfg.local, seed, self.log, index, self.starts.plan
-        )
+            self.task, offset, cfg.local, seed, self.log, index, self.starts.plan,
+            cfg.policy.limits(),
+        )  # fmt: skip
         linearize = self.linearizer()  # None while pi is untrained, and in naive learning
         phases, probes = self.phases(offset)
         outcome = self.learn_locally(learner, linearize, index, phases, probes)

@@ -1,4 +1,5 @@
-"""The global policy as the simulator's acting controller."""
+"""The global policy as the simulator's acting controller, and any actor kept within the
+arm's limits."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from torch import Tensor
 
 from lolgps_torch.policy.guard import ArmBrake, Guard, guarded, within_limits
 from lolgps_torch.policy.net import Acting, GaussianPolicy
-from lolgps_torch.sim.rollout import Actor, matmul_rows
+from lolgps_torch.sim.rollout import Actor, Rowwise, matmul_rows
 from lolgps_torch.state import StateLayout
 
 #: rad: the guard's prediction reuses a rollout's mass matrix until a joint has moved this far
@@ -21,24 +22,20 @@ INERTIA_REUSE = 0.05
 @dataclass
 class PolicyActor:
     """``u_t = mu_theta(x_t) + shifted_t`` for the batch's rows ``rows`` (no noise when
-    ``shifted`` is None), through the policy's guard (:func:`guarded`, braking by the arm's
-    model ``arm``, then :func:`within_limits` of the arm's limits), which remembers per row the
-    tip's closest approach to its target in this rollout (``closest``, m), whether its brake
-    steers it above the target (``steering``) and the arm's mass matrix at a recent pose
-    (``inertia`` at ``inertia_at``: made anew where a joint has moved more than
-    :data:`INERTIA_REUSE` from that pose), all grown to the rows seen and forgotten at t = 0;
-    plain data, so that it can be sent to a worker process. ``by_rows``: the row-wise form
-    (:meth:`rowwise`). The policy's tensors, its guard and the state's layout are taken out of
-    it once, when the actor is made (``acting``, ``guard``, ``layout``): a step evaluates the
-    policy on one row, where looking them up took a quarter of its time."""
+    ``shifted`` is None), through the policy's brake (:func:`guarded`, by the arm's model
+    ``arm``), which remembers per row the tip's closest approach to its target in this rollout
+    (``closest``, m) and whether its brake steers it above the target (``steering``), both grown
+    to the rows seen and forgotten at t = 0; plain data, so that it can be sent to a worker
+    process. ``by_rows``: the row-wise form (:meth:`rowwise`). The policy's tensors, its guard
+    and the state's layout are taken out of it once, when the actor is made (``acting``,
+    ``guard``, ``layout``): a step evaluates the policy on one row, where looking them up took a
+    quarter of its time."""
 
     policy: GaussianPolicy
     arm: ArmBrake
     shifted: Tensor | None  # [N, T, dU]: chol(Sigma_pi) eps_t per rollout
     closest: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.float64))
     steering: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
-    inertia: Tensor = field(default_factory=lambda: torch.zeros(0, 0, 0, dtype=torch.float64))
-    inertia_at: Tensor = field(default_factory=lambda: torch.zeros(0, 0, dtype=torch.float64))
     by_rows: bool = False
     acting: Acting = field(init=False, repr=False)
     guard: Guard = field(init=False, repr=False)
@@ -56,8 +53,6 @@ class PolicyActor:
             self,
             closest=torch.zeros(0, dtype=torch.float64),
             steering=torch.zeros(0, dtype=torch.bool),
-            inertia=torch.zeros(0, 0, 0, dtype=torch.float64),
-            inertia_at=torch.zeros(0, 0, dtype=torch.float64),
             by_rows=True,
         )
 
@@ -71,36 +66,70 @@ class PolicyActor:
         if t == 0:
             self.closest[start:stop] = torch.inf
             self.steering[start:stop] = False
-            self.inertia_at[start:stop] = torch.nan
         u, self.closest[start:stop], self.steering[start:stop] = guarded(
             u, x, self.layout, self.closest[start:stop], self.steering[start:stop], self.guard,
             t, self.arm.stopping,
         )  # fmt: skip
-        config = self.policy.config
-        if not config.guard:
-            return u
-        inertia = self._inertia(x, start, stop)
-        return within_limits(
-            u, x, self.layout, self.arm, inertia, config.guard_limit, config.guard_position
-        )
+        return u
 
     def _grow(self, stop: int, x: Tensor) -> None:
         """The per-row memories grown to ``stop`` rows."""
-        dU, kept = self.layout.dU, self.closest.shape[0]
+        kept = self.closest.shape[0]
         closest = torch.full((stop,), torch.inf, dtype=x.dtype, device=x.device)
         closest[:kept] = self.closest
         steering = torch.zeros(stop, dtype=torch.bool, device=x.device)
         steering[:kept] = self.steering
+        self.closest, self.steering = closest, steering
+
+
+@dataclass
+class LimitedActor:
+    """``inner``'s actions kept within the arm's limits by its model ``arm``
+    (:func:`within_limits`: ``share`` of the velocity limits, ``margin`` rad inside the
+    position limits), with each row's mass matrix ``M(q)`` kept from a recent pose
+    (``inertia`` made at ``inertia_at``: anew where a joint has moved more than
+    :data:`INERTIA_REUSE` from that pose, and at t = 0), grown to the rows seen; plain data,
+    so that it can be sent to a worker process. Any actor can be limited: the global policy's
+    (:func:`policy_actor`) and the local controllers' samples."""
+
+    inner: Actor
+    arm: ArmBrake
+    share: float
+    margin: float
+    inertia: Tensor = field(default_factory=lambda: torch.zeros(0, 0, 0, dtype=torch.float64))
+    inertia_at: Tensor = field(default_factory=lambda: torch.zeros(0, 0, dtype=torch.float64))
+
+    def rowwise(self) -> Actor:
+        """The same actor computing each row alone: ``inner``'s row-wise form (the limits are
+        row by row already)."""
+        if not isinstance(self.inner, Rowwise):
+            raise TypeError(f"{type(self.inner).__name__} has no row-wise form")
+        return LimitedActor(self.inner.rowwise(), self.arm, self.share, self.margin)
+
+    def __call__(self, t: int, x: Tensor, rows: slice) -> Tensor:
+        u = self.inner(t, x, rows)
+        start, stop = rows.start or 0, rows.stop
+        if stop > self.inertia.shape[0]:
+            self._grow(stop, x)
+        if t == 0:
+            self.inertia_at[start:stop] = torch.nan
+        layout = StateLayout(u.shape[-1])
+        inertia = self._inertia(x, layout, start, stop)
+        return within_limits(u, x, layout, self.arm, inertia, self.share, self.margin)
+
+    def _grow(self, stop: int, x: Tensor) -> None:
+        """The per-row mass matrices grown to ``stop`` rows."""
+        dU, kept = self.arm.velocity.shape[0], self.inertia.shape[0]
         inertia = torch.zeros(stop, dU, dU, dtype=x.dtype, device=x.device)
         at = torch.full((stop, dU), torch.nan, dtype=x.dtype, device=x.device)
         if kept:
             inertia[:kept], at[:kept] = self.inertia, self.inertia_at
-        self.closest, self.steering, self.inertia, self.inertia_at = closest, steering, inertia, at
+        self.inertia, self.inertia_at = inertia, at
 
-    def _inertia(self, x: Tensor, start: int, stop: int) -> Tensor:
+    def _inertia(self, x: Tensor, layout: StateLayout, start: int, stop: int) -> Tensor:
         """The rows' mass matrices, made anew where a joint has moved more than
         :data:`INERTIA_REUSE` since they were made (or at t = 0)."""
-        q = x[..., self.layout.q]
+        q = x[..., layout.q]
         moved = ~((q - self.inertia_at[start:stop]).abs().amax(-1) <= INERTIA_REUSE)
         if bool(moved.any()):
             index = torch.arange(start, stop, device=x.device)[moved]
@@ -113,7 +142,11 @@ def policy_actor(policy: GaussianPolicy, arm: ArmBrake, noise: Tensor | None = N
     """The global policy: its mean action, plus ``chol(Sigma_pi) eps_t`` when given noise
     ``eps: [N, T, dU]``, through its guard, which brakes and keeps within the limits by the
     arm's model ``arm`` (:class:`~lolgps_torch.sim.model.ControlStep`)."""
-    if noise is None:
-        return PolicyActor(policy, arm, None)
-    L = torch.linalg.cholesky(policy.covariance()).detach()
-    return PolicyActor(policy, arm, noise @ L.T)
+    shifted = None
+    if noise is not None:
+        shifted = noise @ torch.linalg.cholesky(policy.covariance()).detach().T
+    actor = PolicyActor(policy, arm, shifted)
+    config = policy.config
+    if not config.guard:
+        return actor
+    return LimitedActor(actor, arm, config.guard_limit, config.guard_position)

@@ -72,8 +72,9 @@ class PolicyConfig:
         "the hover").
     :param guard_hover_time: the time constant (s) of that approach.
     :param guard_limit: the brake also trips where a joint passes this share of its velocity
-        limit, before the arm's own controller would stop the arm there; and every action is
-        scaled down where the arm's model predicts that a joint would pass it within the step
+        limit, before the arm's own controller would stop the arm there; and every action, the
+        policy's and the local controllers' samples' (:meth:`limits`), is scaled down where the
+        arm's model predicts that a joint would pass it within the step
         (:func:`~lolgps_torch.policy.guard.within_limits`).
     :param guard_position: that scaling also keeps each bounded joint this far (rad) inside
         its position limits.
@@ -104,6 +105,12 @@ class PolicyConfig:
     guard_hover_time: float = 1.0
     guard_limit: float = 0.8
     guard_position: float = 0.1
+
+    def limits(self) -> tuple[float, float] | None:
+        """``(guard_limit, guard_position)``: the share of the velocity limits and the margin
+        (rad) inside the position limits within which every motion is kept, the policy's and
+        the local controllers' samples alike; None with the guard off."""
+        return (self.guard_limit, self.guard_position) if self.guard else None
 
     def __post_init__(self) -> None:
         check_fields(

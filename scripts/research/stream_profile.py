@@ -56,6 +56,7 @@ PARTS: list[tuple[str, tuple[str, ...]]] = [
     ("  gravity compensation", ("PegWorld.gravity_compensation", "MujocoWorld.gravity_compensation")),
     ("  state (observe)", ("World.observe",)),
     ("  policy actor", ("PolicyActor.__call__",)),
+    ("  within the limits", ("within_limits", "LimitedActor._inertia")),
     ("  linear-Gaussian actor", ("LinearGaussianActor.__call__", "RowwiseLinearGaussian.__call__")),
     ("S-steps", ("CheckedSStep.__call__",)),
     ("  Adam loops (distill)", ("distill",)),
