@@ -69,11 +69,15 @@ def test_a_connection_stops_only_the_instance_it_started() -> None:
 
 @pytest.fixture(scope="module")
 def local_ray() -> Iterator[None]:
-    """A local Ray instance with two CPUs for this module, shut down at its end."""
+    """A local Ray instance with two CPUs for this module, shut down at its end. Its workers
+    run at the tests' own priority: at Ray's default niceness (15) the sweep's runs got a few
+    per cent of a core beside the other tests and took minutes."""
     ray = pytest.importorskip("ray")
     import logging
 
-    ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.ERROR)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("RAY_worker_niceness", "0")
+        ray.init(num_cpus=2, include_dashboard=False, logging_level=logging.ERROR)
     try:
         yield
     finally:
