@@ -7,9 +7,9 @@ The modules whose tests share an expensive fixture (``GROUPS``) each run on one 
 fixture is built once; a shared fixture is also built once per test run under a file lock
 (``shared_dir``), whichever worker asks first. (xdist's own ``--dist loadgroup`` does not group
 under pytest 9, whose node ids xdist 3.8 cannot suffix: the grouping is done here, by
-:func:`pytest_xdist_make_scheduler`.) The stand-in Franka's learning run (``FIRST``, where
-selected) and the groups start first, then the longest tests (``LONGEST``), so that the short
-tests fill both workers' ends.
+:func:`pytest_xdist_make_scheduler`.) The stand-in Franka's two runs of minutes (``FIRST``,
+where selected) start first, one on each worker, then the groups (``GROUP_ORDER``), then the
+longest tests (``LONGEST``), so that the short tests fill both workers' ends.
 """
 
 from __future__ import annotations
@@ -46,9 +46,15 @@ SMALL = [
 CONDITIONS = [[0.0, 0.0], [0.01, -0.01]]
 # module -> the worker group its tests run in: those sharing the CI stream, and those on Ray
 GROUPS = {"test_kill_resume.py": "ci_stream", "test_stream.py": "ci_stream", "test_ray.py": "ray"}
-# before the groups where selected: the stand-in Franka's learning run (-m franka), minutes of
-# its server's real time
-FIRST = ("test_franka.py::test_learns_one_condition_then_evaluates_on_the_arm",)
+# before the groups where selected, one on each worker: the stand-in Franka's learning run and
+# its kill and resume (-m franka), minutes of its server's real time each
+FIRST = (
+    "test_franka.py::test_learns_one_condition_then_evaluates_on_the_arm",
+    "test_franka.py::test_killed_mid_rollout_then_resumed",
+)
+# the groups in the order they start: Ray's (its instance's start-up, under -m slow its sweep)
+# before the CI stream's
+GROUP_ORDER = ("ray", "ci_stream")
 # the longest tests outside the groups, longest first: those of -m slow (the identification's
 # fits), then those of the default suite (seconds each in a run of the whole suite
 # on the loaded 2-core machine: 28, 24, 22, 21, 18, 17, 15, 15, 14, 13, 12 and less)
@@ -81,16 +87,14 @@ def _group(nodeid: str) -> str | None:
 
 
 def _rank(item: pytest.Item) -> int:
-    """Where ``item`` starts: the first ones, the groups, then the longest tests in order, the
-    rest."""
+    """Where ``item`` starts: the first ones, the groups, then the longest tests, each in
+    order, then the rest."""
     name = item.nodeid.rsplit("/", 1)[-1]
-    if name.startswith(FIRST):
-        return 0
-    if _group(item.nodeid):
-        return 1
-    return next(
-        (2 + i for i, long in enumerate(LONGEST) if name.startswith(long)), len(LONGEST) + 2
-    )
+    group = _group(item.nodeid)
+    order = [*(name.startswith(first) for first in FIRST),
+             *(group == other for other in GROUP_ORDER),
+             *(name.startswith(long) for long in LONGEST)]  # fmt: skip
+    return order.index(True) if True in order else len(order)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -99,8 +103,11 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """xdist's scope scheduling with a group per entry of ``GROUPS`` and a scope per other
-    test; the scopes go out largest first (the groups), then in collection order."""
+    test; the scopes go out in the order :func:`pytest_collection_modifyitems` sorted them
+    into (not xdist's, largest scope first: a group would go before ``FIRST``)."""
     from xdist.scheduler import LoadScopeScheduling
+
+    config.option.loadscopereorder = False
 
     class GroupScheduling(LoadScopeScheduling):  # type: ignore[misc]
         def _split_scope(self, nodeid: str) -> str:
@@ -128,13 +135,14 @@ def shared_dir(
 
 
 def ci_stream_command(tmp: Path, out: Path) -> list[str]:
-    """The CI-sized stream (two conditions, small limits) into ``out``."""
+    """The CI-sized stream (two conditions, small limits, one on-policy round after the first
+    fit) into ``out``."""
     conditions = tmp / "conditions.json"
     conditions.write_text(json.dumps(CONDITIONS))
     script = str(ROOT / "scripts" / "run_stream.py")
     urdf = str(ROOT / "robots" / "kuka_peg.urdf")
     return [sys.executable, script, "--urdf", urdf, "--conditions", str(conditions), *SMALL,
-            "--out", str(out)]  # fmt: skip
+            "--onpolicy-rounds", "1", "--out", str(out)]  # fmt: skip
 
 
 def _script_main(script: str, args: list[str], log: str) -> None:
