@@ -222,10 +222,13 @@ def run_stream(fr3: Path, out: Path, conditions: list[list[float]], *extra: str)
 def test_learns_one_condition_then_evaluates_on_the_arm(fr3: Path, tmp_path: Path) -> None:
     """One condition in free space, learnt on the arm from two rollouts an iteration: the peg
     tip ends within the success threshold of the hole's floor point, with no fault; then
-    evaluate.py runs the policy on the arm at that position."""
+    evaluate.py runs the policy on the arm at that position. The on-policy visits without
+    the policy's noise: 3 rollouts of the stand-in's seconds each where there were 9 (the
+    simulated FR3's policy then ends 5 mm from the floor point, 1.5 mm with 9, 14 mm with
+    none)."""
     out = tmp_path / "run"
     command = run_stream(fr3, out, [[0.0, 0.0]], "--samples", "2", "--max-iterations", "2",
-                         "--success-phases", "1", "--repairs", "0")  # fmt: skip
+                         "--success-phases", "1", "--repairs", "0", "--onpolicy-noisy", "0")  # fmt: skip
     positions = tmp_path / "positions.json"
     positions.write_text("[[0.0, 0.0]]")
     evaluate = [sys.executable, "scripts/evaluate.py", "--run", str(out), "--positions",
@@ -317,10 +320,13 @@ print(json.dumps({"before": "".join(before), "after": resumed.stdout + resumed.s
 @pytest.mark.franka
 def test_killed_mid_rollout_then_resumed(fr3: Path, tmp_path: Path) -> None:
     """The learner killed in the middle of the second condition's rollouts; --resume keeps
-    the first condition as it was learnt and redoes the second: the summary holds both."""
+    the first condition as it was learnt and redoes the second: the summary holds both. One
+    S-step per condition on D_g alone (the paper's): no on-policy visits, each a rollout of
+    the stand-in's seconds."""
     out = tmp_path / "run"
     command = run_stream(fr3, out, [[0.0, 0.0], [0.02, 0.02]], "--samples", "2",
-                         "--max-iterations", "2", "--success-phases", "1", "--repairs", "0")  # fmt: skip
+                         "--max-iterations", "2", "--success-phases", "1", "--repairs", "0",
+                         "--no-onpolicy", "--onpolicy-rounds", "0")  # fmt: skip
     output = in_namespace(sys.executable, "-c", KILL_AND_RESUME, json.dumps(command), timeout=3600)
     (line,) = [line for line in output.splitlines() if line.startswith("{")]
     result = json.loads(line)
