@@ -15,7 +15,7 @@ delay estimated and allowed for (``--no-detect-delay``; config.json's ``detected
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict, replace
+from dataclasses import asdict, fields, replace
 
 import torch
 
@@ -40,8 +40,9 @@ from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.data.run_folder import RunFolder, arm_urdf, as_stored, task_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
+from lolgps_torch.lolgps.stream import noiseless_distance
+from lolgps_torch.policy import PolicyConfig
 from lolgps_torch.robot.placement import pinned
-from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 
 LOCAL_FLAGS = ConfigFlags(
@@ -51,6 +52,15 @@ LOCAL_FLAGS = ConfigFlags(
         "step-mult-max": ("cstep.step_mult_max",),
         "step-mult-init": ("cstep.step_mult_init",),
     },
+)
+
+# the limits its samples are kept within, as the stream's are (a sample or check past the
+# arm's own limit is a fault)
+LIMITS = ("guard", "guard_limit", "guard_position")
+LIMIT_FLAGS = ConfigFlags(
+    PolicyConfig(),
+    renames={"no-guard": ("guard",)},
+    skip=[f.name for f in fields(PolicyConfig) if f.name not in LIMITS],
 )
 
 
@@ -71,6 +81,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--iterations", type=int, default=15, help="iteration limit (default 15)")
     LOCAL_FLAGS.add_to(parser.add_argument_group("local learner"))
+    LIMIT_FLAGS.add_to(parser.add_argument_group("the arm's limits"))
     parser.add_argument(
         "--stop-at-success",
         action="store_true",
@@ -134,13 +145,12 @@ def main() -> None:
         placed = replace(tcfg, placement=pinned(tcfg.placement, task.geometry))
         record = {**settings, "task": task_json(placed, urdf_text), "local": asdict(config)}
         folder.start(as_stored(record), urdf_text)
-        learner = LocalLearner(task, offset, config, seed=args.seed)
+        limits = LIMIT_FLAGS.build(args).limits()
+        learner = LocalLearner(task, offset, config, seed=args.seed, limits=limits)
         taken = learn(learner, folder, args.iterations, args.stop_at_success)
-        zero = torch.zeros(1, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
-        final = task.sample(linear_gaussian_actor(learner.p_cur, zero), [offset])
+        distance = noiseless_distance(task, learner.p_cur, offset, limits)
     finally:
         task.close()
-    distance = float(final.final_distance[0])
     folder.write_summary(
         {
             "hole": list(offset),

@@ -4,6 +4,7 @@ through a checkpoint."""
 
 from __future__ import annotations
 
+import math
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +14,7 @@ import torch
 
 from lolgps_torch.data.checkpoint import load_policy, save_policy
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.lolgps.stream import noiseless_distance
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
 from lolgps_torch.policy.guard import Guard, fit_guard, guarded, within_limits
 from lolgps_torch.sim.plant import PlantConfig
@@ -363,5 +365,10 @@ def test_the_local_controllers_samples_are_kept_within_the_limits_in_pybullet() 
         peak = (kept.x[..., task.layout.qd].abs() / task.model.velocity).amax()
         assert 0.3 < float(peak) <= 0.8 * 1.05
         assert float((kept.u - flinging.k).abs().amax()) > 0.5 * float(effort.min())
+        # the controller's noiseless check (which picks the teacher) is kept within them too
+        before = task.arm_rollouts["probe"]
+        assert noiseless_distance(task, flinging, (0.0, 0.0), None) == math.inf  # a fault
+        assert math.isfinite(noiseless_distance(task, flinging, (0.0, 0.0), limits))
+        assert task.arm_rollouts["probe"] == before + 2
     finally:
         task.close()

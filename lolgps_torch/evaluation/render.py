@@ -25,9 +25,8 @@ from lolgps_torch.data.run_folder import atomic_write
 from lolgps_torch.errors import LolgpsError, check_fields
 from lolgps_torch.evaluation.scene import Clip, Scene, View, caption
 from lolgps_torch.lolgps.run import LoadedRun
-from lolgps_torch.policy.actor import policy_actor
+from lolgps_torch.policy.actor import controller_actor, policy_actor
 from lolgps_torch.sim.franka import SIMULATED, RealArmConfig
-from lolgps_torch.sim.rollout import linear_gaussian_actor
 from lolgps_torch.task import PegTask
 
 Who = Literal["policy", "controller", "both"]
@@ -126,11 +125,12 @@ def record_clips(
             clips["policy", c] = _clip(task, "policy", c, off, xs)
     if who in ("controller", "both"):
         zero = torch.zeros(1, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
+        limits = loaded.policy(after).config.limits()  # the run's, as its samples had them
         for c, off in zip(conditions, offsets, strict=True):
             p_cur = records[c].p_cur
             if p_cur is None:
                 raise LolgpsError(f"{loaded.folder.replay_path}: condition {c} stores no p_cur")
-            x = task.sampler.rollout(linear_gaussian_actor(p_cur, zero), [off]).x
+            x = task.sampler.rollout(controller_actor(p_cur, zero, task.model, limits), [off]).x
             clips["controller", c] = _clip(task, "controller", c, off, x[0])
     kinds = ("policy", "controller") if who == "both" else (who,)
     return [clips[kind, c] for c in conditions for kind in kinds]

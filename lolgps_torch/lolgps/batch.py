@@ -122,7 +122,7 @@ class BatchLearner:
         for m, offset in enumerate(conditions):
             labels = Labels(learners[m].p_cur, pres[m], iterations)
             labelled.append(Labelled(offset, label(self.task, found[m].kept, labels), labels))
-            local = noiseless_distance(self.task, learners[m].p_cur, offset)
+            local = noiseless_distance(self.task, learners[m].p_cur, offset, learners[m].limits)
             entry = ConditionSummary(
                 condition=m,
                 offset=list(offset),

@@ -38,8 +38,7 @@ from lolgps_torch.data.records import IdentifiedRecord, IterationRecord
 from lolgps_torch.dynamics import DynamicsConfig, DynamicsFitter
 from lolgps_torch.dynamics.parameters import ArmParameters, IdentifyConfig
 from lolgps_torch.errors import NumericalError, check_fields
-from lolgps_torch.policy.actor import LimitedActor
-from lolgps_torch.sim.rollout import linear_gaussian_actor
+from lolgps_torch.policy.actor import controller_actor
 from lolgps_torch.task import ArmModel, PegTask
 from lolgps_torch.trajopt import (
     CStepConfig,
@@ -281,9 +280,7 @@ class LocalLearner:
         noise = smoothed_noise(
             self.config.samples, T, dU, self.config.noise_smoothing, self.generator
         ).to(self.task.device)
-        actor = linear_gaussian_actor(p_act, noise)
-        if self.limits is not None:
-            actor = LimitedActor(actor, self.task.model, *self.limits)
+        actor = controller_actor(p_act, noise, self.task.model, self.limits)
         samples = self.task.sample(actor, [self.offset] * self.config.samples)
         if self.config.identify:
             if self.identified is not None and self.report is not None:  # once: unseen rollouts

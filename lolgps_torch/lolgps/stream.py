@@ -51,7 +51,7 @@ from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, ite
 from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits
 from lolgps_torch.lolgps.plans import PlannedStarts
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
-from lolgps_torch.sim.rollout import linear_gaussian_actor
+from lolgps_torch.policy.actor import controller_actor
 from lolgps_torch.task import ROLLOUT_KINDS, PegTask
 from lolgps_torch.types import LinearGaussian, Trajectories
 
@@ -277,7 +277,7 @@ class StreamLearner:
 
     def noiseless(self, p: LinearGaussian, offset: tuple[float, float]) -> float:
         """Final distance (m) of the controller ``p``'s noiseless rollout at ``offset``."""
-        return noiseless_distance(self.task, p, offset)
+        return noiseless_distance(self.task, p, offset, self.config.policy.limits())
 
     def phases(self, offset: tuple[float, float]) -> tuple[int, int]:
         """The iterations with successes local learning needs at ``offset``, and the probe
@@ -390,10 +390,17 @@ def condition_seed(config: StreamConfig, index: int) -> int:
     return config.seed * 1000 + index
 
 
-def noiseless_distance(task: PegTask, p: LinearGaussian, offset: tuple[float, float]) -> float:
-    """Final distance (m) of the controller ``p``'s noiseless rollout at ``offset``."""
+def noiseless_distance(
+    task: PegTask,
+    p: LinearGaussian,
+    offset: tuple[float, float],
+    limits: tuple[float, float] | None,
+) -> float:
+    """Final distance (m) of the controller ``p``'s noiseless rollout at ``offset``, kept
+    within ``limits`` as its samples are (:func:`~lolgps_torch.policy.actor.controller_actor`)."""
     zero = torch.zeros(1, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
-    return float(task.sample(linear_gaussian_actor(p, zero), [offset], "probe").scored_distance[0])
+    actor = controller_actor(p, zero, task.model, limits)
+    return float(task.sample(actor, [offset], "probe").scored_distance[0])
 
 
 def policy_distances(

@@ -10,8 +10,9 @@ from torch import Tensor
 
 from lolgps_torch.policy.guard import ArmBrake, Guard, guarded, within_limits
 from lolgps_torch.policy.net import Acting, GaussianPolicy
-from lolgps_torch.sim.rollout import Actor, Rowwise, matmul_rows
+from lolgps_torch.sim.rollout import Actor, Rowwise, linear_gaussian_actor, matmul_rows
 from lolgps_torch.state import StateLayout
+from lolgps_torch.types import LinearGaussian
 
 #: rad: the guard's prediction reuses a rollout's mass matrix until a joint has moved this far
 #: from the pose it was made at (the matrix changes by a few per cent; making it anew at every
@@ -138,6 +139,23 @@ class LimitedActor:
         return self.inertia[start:stop]
 
 
+def kept_within(actor: Actor, arm: ArmBrake, limits: tuple[float, float] | None) -> Actor:
+    """``actor`` kept within the arm's limits by its model ``arm``, ``limits`` being
+    ``(share, margin)`` (:class:`LimitedActor`; :meth:`PolicyConfig.limits`), or ``actor``
+    itself with None."""
+    return actor if limits is None else LimitedActor(actor, arm, *limits)
+
+
+def controller_actor(
+    p: LinearGaussian, noise: Tensor, arm: ArmBrake, limits: tuple[float, float] | None
+) -> Actor:
+    """The linear-Gaussian controller ``p`` with ``noise`` ``[N, T, dU]``
+    (:func:`~lolgps_torch.sim.rollout.linear_gaussian_actor`) kept within ``limits``
+    (:func:`kept_within`): every rollout of a local controller, its samples and its noiseless
+    checks alike."""
+    return kept_within(linear_gaussian_actor(p, noise), arm, limits)
+
+
 def policy_actor(policy: GaussianPolicy, arm: ArmBrake, noise: Tensor | None = None) -> Actor:
     """The global policy: its mean action, plus ``chol(Sigma_pi) eps_t`` when given noise
     ``eps: [N, T, dU]``, through its guard, which brakes and keeps within the limits by the
@@ -145,8 +163,4 @@ def policy_actor(policy: GaussianPolicy, arm: ArmBrake, noise: Tensor | None = N
     shifted = None
     if noise is not None:
         shifted = noise @ torch.linalg.cholesky(policy.covariance()).detach().T
-    actor = PolicyActor(policy, arm, shifted)
-    config = policy.config
-    if not config.guard:
-        return actor
-    return LimitedActor(actor, arm, config.guard_limit, config.guard_position)
+    return kept_within(PolicyActor(policy, arm, shifted), arm, policy.config.limits())

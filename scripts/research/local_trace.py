@@ -165,7 +165,10 @@ def main() -> None:
     policy = None
     if args.condition > 0 and config.use_pre:
         policy = load_policy(folder.checkpoint_dir(args.condition - 1), task.device)
-    learner = LocalLearner(task, offset, config.local, condition_seed(config, args.condition))
+    learner = LocalLearner(
+        task, offset, config.local, condition_seed(config, args.condition),
+        limits=config.policy.limits(),
+    )  # fmt: skip
     policy_prior = prior_from_config(config.local.dynamics)
     clock, shadow = Clock(), Shadow(learner)
     if learner.fitter.prior is not None:
@@ -218,7 +221,7 @@ def main() -> None:
             f"{float(previous[1].cost.sum(1).mean() - samples.cost.sum(1).mean()):9.2f}")  # fmt: skip
         gmm = learner.fitter.prior.gmm if learner.fitter.prior is not None else None
         em = "" if gmm is None else f"{len(learner.fitter.em_history)}/{gmm.K}"
-        dist = noiseless_distance(task, learner.p_cur, offset)
+        dist = noiseless_distance(task, learner.p_cur, offset, learner.limits)
         clock.lap("other")
         print(
             f"{i:3d} {float(samples.cost.sum(1).mean()):8.2f} {float(samples.success.double().mean()):4.0%}"
