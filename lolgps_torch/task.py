@@ -249,8 +249,10 @@ class PegTask:
         self.cost = peg_cost(config.cost, self.arm, self.kinematics, self.layout)
         self._model: ControlStep | None = None
         self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
-        #: the rollouts run on the arm so far, by kind (:meth:`sample`)
+        #: the rollouts run on the arm so far, by kind (:meth:`sample`), and those of them its
+        #: controller stopped at a limit (the reflex watches every physics step)
         self.arm_rollouts: Counter[RolloutKind] = Counter()
+        self.arm_faults: Counter[RolloutKind] = Counter()
         #: the free transitions kept for identification (:meth:`record`)
         self.transitions = TransitionStore(
             self.arm, self.layout, config.world.depth, config.world.dt
@@ -383,7 +385,7 @@ class PegTask:
         the cost; each call's sensor noise is new. The rollouts are counted in
         :attr:`arm_rollouts` as ``kind``: a local controller's ``sample``, a ``probe`` (a
         controller's or the policy's noiseless check) or a ``visit`` of the policy in the
-        S-step."""
+        S-step; those the arm's controller stopped at a limit in :attr:`arm_faults`."""
         self.arm_rollouts[kind] += len(offsets)
         batch, self._batches = self._batches, self._batches + 1
         if self.pool is None:
@@ -392,7 +394,13 @@ class PegTask:
             rolled = Rollouts(
                 *(part.to(self.device) for part in self.pool.rollout(act, offsets, batch))
             )
+        self.arm_faults[kind] += int(rolled.fault.sum())
         return self.score(rolled, offsets)
+
+    def arm_seconds(self) -> float | None:
+        """A real arm's seconds so far under torque command and moving to the start pose
+        (None in a simulator)."""
+        return self.sampler.seconds() if isinstance(self.sampler, ArmSampler) else None
 
     def score(self, rolled: Rollouts, offsets: Sequence[tuple[float, float]]) -> Trajectories:
         """Rollouts (``x: [N, T+1, dX]``, ``x_T`` after the last action) at the hole

@@ -21,6 +21,8 @@ from pathlib import Path
 import pytest
 from conftest import ScriptRun
 
+from lolgps_torch.sim.simulator import WorldConfig
+
 REPO = Path(__file__).resolve().parents[1]
 STAND_IN = REPO / "tests" / "franka_stand_in.py"
 
@@ -240,6 +242,12 @@ def test_learns_one_condition_then_evaluates_on_the_arm(fr3: Path, tmp_path: Pat
     assert entry["local_final_distance"] < 0.06, output
     assert "aborted by reflex" not in output
     assert "rollout 1 on the arm" in output
+    # the arm's seconds: at least its rollouts' seconds under torque (T dt each)
+    world = WorldConfig()
+    rollouts = sum(entry["arm_rollouts"].values())
+    assert summary["arm_seconds"] == pytest.approx(entry["arm_seconds"])
+    assert entry["arm_seconds"] >= 0.9 * rollouts * world.T * world.dt, output
+    assert f"{entry['arm_seconds']:.0f} s on the arm" in output
     evaluation = json.loads((out / "eval.json").read_text())
     (stage,) = evaluation["stages"]
     assert stage["groups"][0]["success_rate"]["mean"] == 1.0, output

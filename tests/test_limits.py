@@ -208,6 +208,14 @@ def test_faults_are_counted_and_the_run_goes_on(
     flags = ("--velocity-limit", "0.05", "--max-iterations", "2", "--no-guard", "--out", str(out))
     result = run_script("scripts/run_stream.py", *_one_condition(tmp_path, *flags))
     assert result.code == 0, result.err
-    (entry,) = json.loads((out / "summary.json").read_text())["conditions"]
+    summary = json.loads((out / "summary.json").read_text())
+    (entry,) = summary["conditions"]
     assert entry["faults"] > 0
     assert f"faults {entry['faults']}" in result.out
+    # every rollout on the arm stopped at a limit is counted by kind: the samples' are its
+    # faults, and the policy's checks and visits are counted beside them
+    assert entry["arm_faults"]["sample"] == entry["faults"]
+    assert summary["arm_faults"]["total"] == sum(entry["arm_faults"].values())
+    assert set(entry["arm_faults"]) == set(entry["arm_rollouts"]) == {"sample", "probe", "visit"}
+    assert f"{sum(entry['arm_faults'].values())} stopped at a limit" in result.out
+    assert "arm_seconds" not in summary and entry["arm_seconds"] is None  # a simulator

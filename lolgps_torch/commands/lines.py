@@ -40,11 +40,14 @@ def condition_line(entry: ConditionSummary, total: int) -> str:
     """A finished condition's line: its first success, distances, faults and rollouts."""
     failure = f"; failed: {entry.failure}" if entry.failure else ""
     kinds = ", ".join(f"{n} {kind}s" for kind, n in entry.arm_rollouts.items())
+    stopped = sum(entry.arm_faults.values())
+    seconds = "" if entry.arm_seconds is None else f", {entry.arm_seconds:.0f} s on the arm"
     return (
         f"condition {entry.condition + 1}/{total} done: first success at iteration "
         f"{entry.first_success_iteration}, p_cur distance {entry.local_final_distance:.4f}, "
         f"global policy distance {entry.policy_final_distance_after:.4f}, faults "
-        f"{entry.faults}; arm rollouts {sum(entry.arm_rollouts.values())} ({kinds}){failure}"
+        f"{entry.faults}; arm rollouts {sum(entry.arm_rollouts.values())} ({kinds}; "
+        f"{stopped} stopped at a limit){seconds}{failure}"
     )
 
 

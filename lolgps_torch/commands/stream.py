@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections import Counter
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal
 
@@ -268,6 +269,7 @@ def learn(plan: Plan, task: PegTask, started: float) -> list[ConditionSummary]:
             "seed": plan.config["seed"],
             **detected,
             "arm_rollouts": arm_rollouts(summary, int(plan.config.get(START_NOTE) or 0)),
+            **arm_use(summary),
             "conditions": [e.to_json() for e in summary],
         }
     )
@@ -285,6 +287,19 @@ def arm_rollouts(summary: list[ConditionSummary], start: int) -> dict[str, int]:
     if any(entry.arm_rollouts for entry in summary):  # the final check, where counted
         kinds["probe"] = kinds.get("probe", 0) + len(summary)
     return {**kinds, "total": sum(kinds.values())}
+
+
+def arm_use(summary: list[ConditionSummary]) -> dict[str, Any]:
+    """The stream's rollouts stopped at a limit by kind (``arm_faults``, with their
+    ``total``), and on a real arm its seconds (``arm_seconds``), summed over the conditions."""
+    faults: Counter[str] = Counter()
+    for entry in summary:
+        faults.update(entry.arm_faults)
+    use: dict[str, Any] = {"arm_faults": {**faults, "total": sum(faults.values())}}
+    seconds = [entry.arm_seconds for entry in summary if entry.arm_seconds is not None]
+    if seconds:
+        use["arm_seconds"] = sum(seconds)
+    return use
 
 
 def run_stream(settings: StreamSettings, started: float | None = None) -> list[ConditionSummary]:

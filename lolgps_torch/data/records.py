@@ -110,6 +110,10 @@ class ConditionSummary:
     :param arm_rollouts: the rollouts run on the arm for the condition, by kind: ``sample``
         (local learning), ``probe`` (noiseless checks of a controller or of the policy) and
         ``visit`` (the policy's rollouts in the S-step); empty in runs that did not count them.
+    :param arm_faults: those of them the arm's controller stopped at a limit, by kind (empty
+        in runs that did not count them).
+    :param arm_seconds: a real arm's seconds for the condition, under torque command and
+        moving to the start pose (None in a simulator).
     """
 
     condition: int
@@ -130,6 +134,8 @@ class ConditionSummary:
     visited_rows: int = 0
     faults: int = 0
     arm_rollouts: dict[str, int] = field(default_factory=dict)
+    arm_faults: dict[str, int] = field(default_factory=dict)
+    arm_seconds: float | None = None
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

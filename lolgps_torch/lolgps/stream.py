@@ -209,7 +209,8 @@ class StreamLearner:
         returns its summary entry. The first controller at the ``upcoming`` condition's offset
         is planned during the S-step where a rollout worker is idle (:class:`PlannedStarts`)."""
         cfg, seed = self.config, condition_seed(self.config, index)
-        counted = Counter(self.task.arm_rollouts)
+        counted, stopped = Counter(self.task.arm_rollouts), Counter(self.task.arm_faults)
+        seconds_before = self.task.arm_seconds()
         learner = LocalLearner(
             self.task, offset, cfg.local, seed, self.log, index, self.starts.plan,
             cfg.policy.limits(),
@@ -248,6 +249,8 @@ class StreamLearner:
             visited_rows=0 if checked.visited is None else checked.visited.R,
             faults=outcome.faults,
             arm_rollouts={k: self.task.arm_rollouts[k] - counted[k] for k in ROLLOUT_KINDS},
+            arm_faults={k: self.task.arm_faults[k] - stopped[k] for k in ROLLOUT_KINDS},
+            arm_seconds=arm_seconds(self.task, seconds_before),
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
@@ -383,6 +386,12 @@ def checked_sstep(task: PegTask, config: StreamConfig, distill: Distiller) -> Ch
     return CheckedSStep(
         distill, visits, threshold, config.onpolicy, config.onpolicy_rounds, config.repairs
     )
+
+
+def arm_seconds(task: PegTask, before: float | None) -> float | None:
+    """A real arm's seconds since it had ``before`` (None in a simulator)."""
+    now = task.arm_seconds()
+    return None if now is None or before is None else now - before
 
 
 def condition_seed(config: StreamConfig, index: int) -> int:

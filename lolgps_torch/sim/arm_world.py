@@ -219,6 +219,15 @@ class ArmSampler(Sampler):
         self.real, self.arm, self.mouth, self.plant = real, arm, nominal_mouth, plant
         super().__init__(arm, config, nominal_mouth, q0, 1, device)
 
+    def seconds(self) -> float:
+        """The arm's seconds so far under torque command and moving to a start pose (0
+        before its first rollout)."""
+        world = self.worlds[0] if self.worlds else None
+        if not isinstance(world, ArmWorld):
+            return 0.0
+        stats = world.device.stats()
+        return stats.torque_seconds + stats.move_seconds
+
     def grow(self, n_worlds: int) -> None:
         """The arm's world, once."""
         if not self.worlds:
