@@ -73,7 +73,9 @@ def make_run(folder: Path, finished: bool = True) -> None:
     entries: list[dict[str, Any]] = [
         {"condition": c, "offset": o, "iterations": 10 + c, "rollouts": 50, "first_success_iteration": 2,
          "local_final_distance": 0.0012, "policy_final_distance_after": 0.001 * (c + 1),
-         "policy_success_after": True, "repairs": 0, "failure": None}
+         "policy_success_after": True, "repairs": 0, "failure": None,
+         "arm_rollouts": {"sample": 45, "probe": 3, "visit": 9 * (c + 1)},
+         "arm_faults": {"sample": c, "probe": 0, "visit": 0}}
         for c, o in enumerate(CONDITIONS)
     ]  # fmt: skip
     for entry in entries[:2]:
@@ -81,7 +83,10 @@ def make_run(folder: Path, finished: bool = True) -> None:
     if finished:
         for entry, end in zip(entries, (0.0011, 0.094, 0.0013), strict=True):
             entry.update(policy_final_distance_end=end, policy_success_end=end < 0.06)
-        run.write_summary({"method": "lolgps", "seed": 3, "conditions": entries})
+        counted = {"start": 130, "sample": 135, "probe": 12, "visit": 54, "total": 331}
+        faults = {"sample": 3, "probe": 0, "visit": 0, "total": 3}
+        run.write_summary({"method": "lolgps", "seed": 3, "arm_rollouts": counted,
+                           "arm_faults": faults, "conditions": entries})  # fmt: skip
 
 
 def add_outputs(folder: Path) -> None:
@@ -119,10 +124,21 @@ def test_the_report_links_exactly_the_files_the_folder_has(tmp_path: Path) -> No
     rows = [cells for cells in page.cells if cells and cells[0] in ("0", "1", "2")]
     assert [r[:2] for r in rows] == [["0", "train0"], ["1", "train0"], ["2", "train1"]]
     assert rows[1][2] == "+20.0, -10.0"  # hole offset (mm)
-    assert [r[8] for r in rows] == ["1.1", "94.0", "1.3"] and [r[9] for r in rows] == [
+    assert [r[10] for r in rows] == ["1.1", "94.0", "1.3"] and [r[11] for r in rows] == [
         "success", "miss", "success"
     ]  # fmt: skip
+    assert [r[5:7] for r in rows] == [
+        ["45 / 3 / 9", "0"],
+        ["45 / 3 / 18", "1"],
+        ["45 / 3 / 27", "2"],
+    ]
     text = out.read_text()
+    assert (
+        "Rollouts on the arm: 130 start, 135 sample, 12 probe, 54 visit (331 while learning)"
+        in text
+    )
+    assert "Stopped at a limit while learning: 3 (3 sample, 0 probe, 0 visit)" in text
+    assert "Seconds on the arm" not in text  # a simulator
     assert "Forgotten (succeeded after their own S-step, missed at the end): [0]" in text
     settings = {cells[0]: cells[1] for cells in page.cells if len(cells) == 2}
     assert settings["stream.policy.steps"] == "3000" and settings["seed"] == "3"

@@ -1,7 +1,8 @@
 """The run report: one HTML page in the run folder, ``report.html``, that opens offline.
 
 It shows what the folder holds: the configuration (config.json), the per-condition table
-(summary.json, or the checkpoints' entries of an interrupted run), the Fig. 4 evaluation
+(summary.json, or the checkpoints' entries of an interrupted run), the rollouts on the arm by
+kind with those stopped at a limit and a real arm's seconds (summary.json, eval.json), the Fig. 4 evaluation
 (fig4.png, from scripts/evaluate.py), the retention curve (retention.png and the positions
 forgotten, from scripts/retention.py) and every video in ``videos/`` (scripts/render.py).
 Files are linked by paths relative to the folder, so the folder can be moved or shared; a part
@@ -107,6 +108,8 @@ def _conditions(config: dict[str, Any], entries: list[dict[str, Any]]) -> str:
                 f"{dx:+.1f}, {dy:+.1f}",
                 e.get("iterations", ""),
                 e.get("rollouts", ""),
+                " / ".join(str(n) for n in e.get("arm_rollouts", {}).values()),
+                sum(e["arm_faults"].values()) if "arm_faults" in e else "",
                 "" if e.get("first_success_iteration") is None else e["first_success_iteration"],
                 _mm(e.get("local_final_distance")),
                 _mm(e.get("policy_final_distance_after")),
@@ -118,7 +121,7 @@ def _conditions(config: dict[str, Any], entries: list[dict[str, Any]]) -> str:
         )
     header = (
         "condition", "stage", "hole offset (mm)", "iterations", "rollouts",
-        "first success", "p_cur (mm)", "policy after (mm)", "policy end (mm)", "policy",
+        "on the arm: samples / probes / visits", "stopped at a limit", "first success", "p_cur (mm)", "policy after (mm)", "policy end (mm)", "policy",
         "repairs", "failure",
     )  # fmt: skip
     done = f"{len(entries)} of {len(offsets)} conditions completed"
@@ -129,6 +132,28 @@ def _conditions(config: dict[str, Any], entries: list[dict[str, Any]]) -> str:
         "'after' right after the condition's own S-step, 'end' the final policy's.</p>"
         + _table(header, rows)
     )
+
+
+def _arm_use(folder: RunFolder) -> str:
+    """The rollouts on the arm by kind (summary.json's, with eval.json's evaluation), those
+    stopped at a limit and a real arm's seconds."""
+    summary = folder.read_summary() if folder.summary_path.is_file() else {}
+    counted = dict(summary.get("arm_rollouts", {}))
+    if folder.eval_path.is_file():
+        counted |= read_json(folder.eval_path).get("arm_rollouts", {})
+    if not counted:
+        return "<p>Not counted: the stream has not finished, or predates the count.</p>"
+    total = counted.pop("total", None)
+    kinds = ", ".join(f"{n} {html.escape(kind)}" for kind, n in counted.items())
+    stream = f" ({total} while learning)" if total is not None else ""
+    text = f"<p>Rollouts on the arm: {kinds}{stream}."
+    faults = dict(summary.get("arm_faults", {}))
+    if faults:
+        stopped = ", ".join(f"{n} {html.escape(k)}" for k, n in faults.items() if k != "total")
+        text += f" Stopped at a limit while learning: {faults.get('total', 0)} ({stopped})."
+    if "arm_seconds" in summary:
+        text += f" Seconds on the arm while learning: {float(summary['arm_seconds']):.0f}."
+    return text + "</p>"
 
 
 def _figure(folder: Path, name: str, alt: str, command: str) -> str:
@@ -184,6 +209,7 @@ def report_html(path: str | Path) -> str:
     sections = [
         ("Configuration", _configuration(config)),
         ("Conditions", _conditions(config, entries)),
+        ("Time on the arm", _arm_use(folder)),
         ("Evaluation (Fig. 4)", _figure(folder.path, folder.figure_path.name, "Fig. 4", "python scripts/evaluate.py --run DIR")),
         ("Retention", _retention(folder.path)),
         ("Videos", _videos(folder.path)),
