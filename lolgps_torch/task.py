@@ -246,6 +246,8 @@ class PegTask:
         )
         parallel = workers > 1 and self.device.type == "cpu" and real.arm == "simulated"
         self.pool = RolloutPool(setup, workers, self.sampler) if parallel else None
+        self._n_worlds, self._simulated = n_worlds, real.arm == "simulated"
+        self._model_sampler: Sampler | None = None  # the model's own worlds (:meth:`simulate`)
         self.cost = peg_cost(config.cost, self.arm, self.kinematics, self.layout)
         self._model: ControlStep | None = None
         self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
@@ -253,6 +255,8 @@ class PegTask:
         #: controller stopped at a limit (the reflex watches every physics step)
         self.arm_rollouts: Counter[RolloutKind] = Counter()
         self.arm_faults: Counter[RolloutKind] = Counter()
+        #: the rollouts run on the arm's model instead of the arm (:meth:`simulate`)
+        self.model_rollouts = 0
         #: the free transitions kept for identification (:meth:`record`)
         self.transitions = TransitionStore(
             self.arm, self.layout, config.world.depth, config.world.dt
@@ -387,15 +391,51 @@ class PegTask:
         controller's or the policy's noiseless check) or a ``visit`` of the policy in the
         S-step; those the arm's controller stopped at a limit in :attr:`arm_faults`."""
         self.arm_rollouts[kind] += len(offsets)
-        batch, self._batches = self._batches, self._batches + 1
-        if self.pool is None:
-            rolled = rollout_rows(self.sampler, act, offsets, range(len(offsets)), batch)
-        else:
-            rolled = Rollouts(
-                *(part.to(self.device) for part in self.pool.rollout(act, offsets, batch))
-            )
+        rolled = self._roll(act, offsets, self.sampler, self.pool)
         self.arm_faults[kind] += int(rolled.fault.sum())
         return self.score(rolled, offsets)
+
+    def believed_plant(self) -> PlantConfig:
+        """The arm as the learner believes it is: its description in the task's simulator,
+        compensated for gravity by the learner where the arm was found not to be, acting
+        ``known_delay`` late, and none of what the learner is not told (a payload, friction,
+        other inertia, sensor noise)."""
+        world = self.config.world
+        return PlantConfig(
+            gravity_compensation="none" if world.compensate_gravity else "plant",
+            action_delay=world.known_delay,
+            limits=self.config.plant.limits,
+        )
+
+    def simulate(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
+        """:meth:`sample` on the arm's model (:meth:`believed_plant`) instead of the arm,
+        counted in :attr:`model_rollouts`: on the task's own worlds where they simulate that
+        model (a simulated arm as the learner believes it), else on worlds of the model's own
+        in this process (a real arm's, or a simulated plant unlike its description)."""
+        self.model_rollouts += len(offsets)
+        if self._simulated and self.config.plant == self.believed_plant():
+            return self.score(self._roll(act, offsets, self.sampler, self.pool), offsets)
+        if self._model_sampler is None:
+            mouth, q0 = self.geometry.nominal_mouth, self.geometry.q0
+            self._model_sampler = Sampler(
+                self.arm, self.config.world, mouth, q0, self._n_worlds, self.device,
+                self.believed_plant(), self.config.sim,
+            )  # fmt: skip
+        return self.score(self._roll(act, offsets, self._model_sampler, None), offsets)
+
+    def _roll(
+        self,
+        act: Actor,
+        offsets: Sequence[tuple[float, float]],
+        sampler: Sampler,
+        pool: RolloutPool | None,
+    ) -> Rollouts:
+        """One batch of rollouts on ``sampler``'s worlds, or on ``pool``'s workers; each
+        batch's sensor noise is new."""
+        batch, self._batches = self._batches, self._batches + 1
+        if pool is None:
+            return rollout_rows(sampler, act, offsets, range(len(offsets)), batch)
+        return Rollouts(*(part.to(self.device) for part in pool.rollout(act, offsets, batch)))
 
     def arm_seconds(self) -> float | None:
         """A real arm's seconds so far under torque command and moving to the start pose
@@ -413,6 +453,8 @@ class PegTask:
 
     def close(self) -> None:
         self.sampler.close()
+        if self._model_sampler is not None:
+            self._model_sampler.close()
         if self.pool is not None:
             self.pool.close()
 

@@ -225,12 +225,13 @@ def test_learns_one_condition_then_evaluates_on_the_arm(fr3: Path, tmp_path: Pat
     """One condition in free space, learnt on the arm from two rollouts an iteration: the peg
     tip ends within the success threshold of the hole's floor point, with no fault; then
     evaluate.py runs the policy on the arm at that position. The on-policy visits without
-    the policy's noise: 3 rollouts of the stand-in's seconds each where there were 9 (the
-    simulated FR3's policy then ends 5 mm from the floor point, 1.5 mm with 9, 14 mm with
-    none)."""
+    the policy's noise (the simulated FR3's policy then ends 5 mm from the floor point, 1.5 mm
+    with the noisy ones too, 14 mm with none), on the arm's model (``--visits model``): the 3
+    visits run in MuJoCo in the learner's process, and the arm runs only samples and checks."""
     out = tmp_path / "run"
     command = run_stream(fr3, out, [[0.0, 0.0]], "--samples", "2", "--max-iterations", "2",
-                         "--success-phases", "1", "--repairs", "0", "--onpolicy-noisy", "0")  # fmt: skip
+                         "--success-phases", "1", "--repairs", "0", "--onpolicy-noisy", "0",
+                         "--visits", "model")  # fmt: skip
     positions = tmp_path / "positions.json"
     positions.write_text("[[0.0, 0.0]]")
     evaluate = [sys.executable, "scripts/evaluate.py", "--run", str(out), "--positions",
@@ -242,6 +243,8 @@ def test_learns_one_condition_then_evaluates_on_the_arm(fr3: Path, tmp_path: Pat
     assert entry["local_final_distance"] < 0.06, output
     assert "aborted by reflex" not in output
     assert "rollout 1 on the arm" in output
+    assert entry["arm_rollouts"]["visit"] == 0 and entry["model_rollouts"] == 3
+    assert summary["model_rollouts"] == 3
     # the arm's seconds: at least its rollouts' seconds under torque (T dt each)
     world = WorldConfig()
     rollouts = sum(entry["arm_rollouts"].values())

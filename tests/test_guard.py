@@ -6,16 +6,17 @@ from __future__ import annotations
 
 import math
 import pickle
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import pytest
 import torch
 
 from lolgps_torch.data.checkpoint import load_policy, save_policy
-from lolgps_torch.lolgps.local import LocalConfig, LocalLearner
+from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, initial_controller
 from lolgps_torch.lolgps.stream import noiseless_distance
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
+from lolgps_torch.policy.actor import controller_actor
 from lolgps_torch.policy.guard import Guard, fit_guard, guarded, within_limits
 from lolgps_torch.sim.plant import PlantConfig
 from lolgps_torch.sim.rollout import Rowwise, matmul_rows
@@ -372,3 +373,31 @@ def test_the_local_controllers_samples_are_kept_within_the_limits_in_pybullet() 
         assert task.arm_rollouts["probe"] == before + 2
     finally:
         task.close()
+
+
+def test_the_arms_model_runs_what_the_arm_would_without_counting_as_the_arm() -> None:
+    """``PegTask.simulate``: a simulated arm as the learner believes it is its own model, so its
+    rollouts are the arm's, counted as the model's; an arm that carries a payload the learner
+    is not told of is not, and its model moves as the unloaded arm does."""
+    config = TaskConfig(urdf=str(ROOT / "robots" / "kuka_peg.urdf"), world=WorldConfig(T=8))
+    loaded = replace(config, plant=PlantConfig(payload=2.0, gravity_compensation="model"))
+    nominal, carrying = PegTask(config, n_worlds=2), PegTask(loaded, n_worlds=2)
+    try:
+        zero = torch.zeros(2, 8, nominal.layout.dU, dtype=F64)
+        hold = controller_actor(
+            initial_controller(nominal, LocalConfig()), zero, nominal.model, None
+        )
+        offsets = [(0.0, 0.0), (0.01, 0.0)]
+        on_arm = nominal.sample(hold, offsets)
+        on_model = nominal.simulate(hold, offsets)
+        assert torch.equal(on_arm.x, on_model.x)
+        assert nominal.arm_rollouts["sample"] == 2 and nominal.model_rollouts == 2
+        assert sum(nominal.arm_rollouts.values()) == 2
+        sagging = carrying.sample(hold, offsets)
+        believed = carrying.simulate(hold, offsets)
+        assert torch.allclose(believed.x, on_arm.x, atol=1e-9)
+        assert float((sagging.x - on_arm.x).abs().amax()) > 1e-3
+        assert sum(carrying.arm_rollouts.values()) == 2 and carrying.model_rollouts == 2
+    finally:
+        nominal.close()
+        carrying.close()

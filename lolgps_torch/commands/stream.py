@@ -291,11 +291,15 @@ def arm_rollouts(summary: list[ConditionSummary], start: int) -> dict[str, int]:
 
 def arm_use(summary: list[ConditionSummary]) -> dict[str, Any]:
     """The stream's rollouts stopped at a limit by kind (``arm_faults``, with their
-    ``total``), and on a real arm its seconds (``arm_seconds``), summed over the conditions."""
+    ``total``), its rollouts on the arm's model instead (``model_rollouts``), and on a real
+    arm its seconds (``arm_seconds``), summed over the conditions."""
     faults: Counter[str] = Counter()
     for entry in summary:
         faults.update(entry.arm_faults)
-    use: dict[str, Any] = {"arm_faults": {**faults, "total": sum(faults.values())}}
+    use: dict[str, Any] = {
+        "arm_faults": {**faults, "total": sum(faults.values())},
+        "model_rollouts": sum(entry.model_rollouts for entry in summary),
+    }
     seconds = [entry.arm_seconds for entry in summary if entry.arm_seconds is not None]
     if seconds:
         use["arm_seconds"] = sum(seconds)

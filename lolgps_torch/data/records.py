@@ -114,6 +114,8 @@ class ConditionSummary:
         in runs that did not count them).
     :param arm_seconds: a real arm's seconds for the condition, under torque command and
         moving to the start pose (None in a simulator).
+    :param model_rollouts: the policy's rollouts on the arm's model instead of the arm (the
+        S-step's visits with ``--visits model``).
     """
 
     condition: int
@@ -136,6 +138,7 @@ class ConditionSummary:
     arm_rollouts: dict[str, int] = field(default_factory=dict)
     arm_faults: dict[str, int] = field(default_factory=dict)
     arm_seconds: float | None = None
+    model_rollouts: int = 0
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

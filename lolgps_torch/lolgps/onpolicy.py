@@ -23,7 +23,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -96,6 +96,9 @@ class Visit(NamedTuple):
     seconds: float
 
 
+VisitsOn = Literal["arm", "model"]
+
+
 class PolicyVisits:
     """Rolls the policy out at the teachers' positions and labels the states it reaches.
 
@@ -103,10 +106,14 @@ class PolicyVisits:
     :param gate: the support radius, in D_g's per-step standard deviations (module docstring).
     :param floor: the smallest standard deviation of a joint angle (rad); the joint
         velocities' is ``10 floor`` (rad/s).
+    :param on: where the policy is rolled out: on the arm, or on the arm's model
+        (:meth:`~lolgps_torch.task.PegTask.simulate`), which costs the arm no rollout.
     """
 
-    def __init__(self, task: PegTask, noisy: int, gate: float, floor: float) -> None:
-        self.task, self.noisy, self.gate = task, noisy, gate
+    def __init__(
+        self, task: PegTask, noisy: int, gate: float, floor: float, on: VisitsOn = "arm"
+    ) -> None:
+        self.task, self.noisy, self.gate, self.on = task, noisy, gate, on
         lay = task.layout
         self.floor = torch.zeros(lay.dX, dtype=torch.float64, device=task.device)
         self.floor[lay.q] = floor
@@ -126,9 +133,12 @@ class PolicyVisits:
         gen = torch.Generator().manual_seed(seed)
         noise = torch.randn(C * noisy, T, dU, generator=gen, dtype=torch.float64)
         noise = torch.cat([noise.new_zeros(C, T, dU), noise]).to(self.task.device)
+        actor = policy_actor(policy, self.task.model, noise)
         try:
-            runs: Trajectories = self.task.sample(
-                policy_actor(policy, self.task.model, noise), offsets, "visit"
+            runs: Trajectories = (
+                self.task.simulate(actor, offsets)
+                if self.on == "model"
+                else self.task.sample(actor, offsets, "visit")
             )
         except NumericalError:
             return Visit([math.inf] * C, None, len(offsets), time.perf_counter() - t0)

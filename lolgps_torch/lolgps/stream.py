@@ -48,7 +48,7 @@ from lolgps_torch.dynamics import prior_from_config
 from lolgps_torch.errors import LolgpsError, NumericalError, check_fields
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate
-from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits
+from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits, VisitsOn
 from lolgps_torch.lolgps.plans import PlannedStarts
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
 from lolgps_torch.policy.actor import controller_actor
@@ -98,6 +98,10 @@ class StreamConfig:
     :param onpolicy_gate: the teachers' support, in standard deviations of D_g's states.
     :param onpolicy_floor: the smallest standard deviation of a joint angle in the support
         (rad; the joint velocities': 10 times as much, rad/s).
+    :param visits: where the S-step's visits and closed-loop checks roll the policy out: on
+        the arm, or on the arm's model (a simulated world of its description as the learner
+        believes it: PegTask.simulate), which spares a real arm every visit; the policy's
+        checks before and after each condition stay on the arm.
     :param seed: seeds every condition's sampling and every S-step.
     """
 
@@ -119,6 +123,7 @@ class StreamConfig:
     onpolicy_noisy: int = 2
     onpolicy_gate: float = 3.0
     onpolicy_floor: float = 0.005
+    visits: VisitsOn = "arm"
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -128,6 +133,7 @@ class StreamConfig:
             ("alpha_schedule", AlphaSchedule),
             ("cstep_anchor", CStepAnchor),
             ("transfer", Transfer),
+            ("visits", VisitsOn),
         )
         for name, kind in options:
             if getattr(self, name) not in get_args(kind):
@@ -210,7 +216,7 @@ class StreamLearner:
         is planned during the S-step where a rollout worker is idle (:class:`PlannedStarts`)."""
         cfg, seed = self.config, condition_seed(self.config, index)
         counted, stopped = Counter(self.task.arm_rollouts), Counter(self.task.arm_faults)
-        seconds_before = self.task.arm_seconds()
+        seconds_before, simulated = self.task.arm_seconds(), self.task.model_rollouts
         learner = LocalLearner(
             self.task, offset, cfg.local, seed, self.log, index, self.starts.plan,
             cfg.policy.limits(),
@@ -251,6 +257,7 @@ class StreamLearner:
             arm_rollouts={k: self.task.arm_rollouts[k] - counted[k] for k in ROLLOUT_KINDS},
             arm_faults={k: self.task.arm_faults[k] - stopped[k] for k in ROLLOUT_KINDS},
             arm_seconds=arm_seconds(self.task, seconds_before),
+            model_rollouts=self.task.model_rollouts - simulated,
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
@@ -381,7 +388,9 @@ class StreamLearner:
 def checked_sstep(task: PegTask, config: StreamConfig, distill: Distiller) -> CheckedSStep:
     """The S-step ``distill``, on the policy's own states and checked in closed loop, with
     the stream's settings."""
-    visits = PolicyVisits(task, config.onpolicy_noisy, config.onpolicy_gate, config.onpolicy_floor)
+    visits = PolicyVisits(
+        task, config.onpolicy_noisy, config.onpolicy_gate, config.onpolicy_floor, config.visits
+    )
     threshold = task.config.world.success_threshold
     return CheckedSStep(
         distill, visits, threshold, config.onpolicy, config.onpolicy_rounds, config.repairs
