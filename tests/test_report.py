@@ -139,6 +139,7 @@ def test_the_report_links_exactly_the_files_the_folder_has(tmp_path: Path) -> No
     )
     assert "Stopped at a limit while learning: 3 (3 sample, 0 probe, 0 visit)" in text
     assert "Seconds on the arm" not in text  # a simulator
+    assert "on the arm's model" not in text  # its visits ran on the arm
     assert "Forgotten (succeeded after their own S-step, missed at the end): [0]" in text
     settings = {cells[0]: cells[1] for cells in page.cells if len(cells) == 2}
     assert settings["stream.policy.steps"] == "3000" and settings["seed"] == "3"
