@@ -22,6 +22,7 @@ Per iteration it prints:
 - the one-step prediction error of the fit on the next iteration's samples (held out),
   ``mean |x_{t+1} - (F_t [x_t; u_t] + f_t)|^2``, as a ratio to its error on its own samples;
 - the EM iterations of the dynamics' GMM update and its number of clusters K;
+- the arm's reason for each sample it stopped at a limit (a line of its own);
 - CPU seconds (one torch thread) of sampling, of ``LocalLearner.fit`` (GMM update, prior
   evaluation, regression, cost expansion, step adaptation), p_pre's fit and the C-step,
   summed at the end as ratios to sampling (the trace's own extra fit is counted apart).
@@ -58,6 +59,7 @@ from lolgps_torch.lolgps.local import Fit, LocalLearner
 from lolgps_torch.lolgps.run import read_run
 from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, noiseless_distance
 from lolgps_torch.policy import linearize_policy
+from lolgps_torch.sim.reflex import Reflex
 from lolgps_torch.task import PegTask
 from lolgps_torch.trajopt import CStepConfig, laplace_cost
 from lolgps_torch.trajopt.lqr import augment, solve_with_retry, to_policy
@@ -141,6 +143,29 @@ class Shadow:
         )
 
 
+def recorded_faults() -> list[str]:
+    """The arm's reason for every rollout it stops at a limit from now on, in this process
+    (:meth:`Reflex.violation` wrapped), in the list returned."""
+    reasons: list[str] = []
+    violation = Reflex.violation
+
+    def recording(reflex: Reflex, q: Any, qd: Any, step: int) -> str | None:
+        reason = violation(reflex, q, qd, step)
+        if reason is not None:
+            reasons.append(reason)
+        return reason
+
+    Reflex.violation = recording  # type: ignore[method-assign,assignment]
+    return reasons
+
+
+def print_stopped(reasons: list[str]) -> None:
+    """A line per reason recorded (:func:`recorded_faults`); then forget them."""
+    for reason in reasons:
+        print(f"    a sample stopped: {reason}")
+    reasons.clear()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -178,6 +203,7 @@ def main() -> None:
     fit_module.gaussian_regression = clock.wrap(gaussian_regression, "fit(): regression")
     task.cost.expand = clock.wrap(task.cost.expand, "fit(): cost expansion")  # type: ignore[method-assign]
     local_module.laplace_cost = clock.wrap(laplace_cost, "fit(): step adaptation")
+    stopped = recorded_faults()
     iterations = args.iterations or config.max_iterations
     p_pre: LinearGaussian | None = None
     history: list[Trajectories] = []
@@ -192,6 +218,7 @@ def main() -> None:
         clock.lap("other")
         samples = learner.sample(p_act)
         clock.lap("sampling")
+        print_stopped(stopped)
         history.append(samples)
         clock.lap("other")
         pred, act = shadow.improvements(p_act, samples)
