@@ -255,8 +255,9 @@ class PegTask:
         #: controller stopped at a limit (the reflex watches every physics step)
         self.arm_rollouts: Counter[RolloutKind] = Counter()
         self.arm_faults: Counter[RolloutKind] = Counter()
-        #: the rollouts run on the arm's model instead of the arm (:meth:`simulate`)
-        self.model_rollouts = 0
+        #: the rollouts run on the arm's model instead of the arm (:meth:`simulate`), and those
+        #: of them stopped at a limit
+        self.model_rollouts = self.model_faults = 0
         #: the free transitions kept for identification (:meth:`record`)
         self.transitions = TransitionStore(
             self.arm, self.layout, config.world.depth, config.world.dt
@@ -411,17 +412,21 @@ class PegTask:
         """:meth:`sample` on the arm's model (:meth:`believed_plant`) instead of the arm,
         counted in :attr:`model_rollouts`: on the task's own worlds where they simulate that
         model (a simulated arm as the learner believes it), else on worlds of the model's own
-        in this process (a real arm's, or a simulated plant unlike its description)."""
+        in this process (a real arm's, or a simulated plant unlike its description). Those
+        stopped at a limit are counted in :attr:`model_faults`."""
         self.model_rollouts += len(offsets)
         if self._simulated and self.config.plant == self.believed_plant():
-            return self.score(self._roll(act, offsets, self.sampler, self.pool), offsets)
-        if self._model_sampler is None:
-            mouth, q0 = self.geometry.nominal_mouth, self.geometry.q0
-            self._model_sampler = Sampler(
-                self.arm, self.config.world, mouth, q0, self._n_worlds, self.device,
-                self.believed_plant(), self.config.sim,
-            )  # fmt: skip
-        return self.score(self._roll(act, offsets, self._model_sampler, None), offsets)
+            rolled = self._roll(act, offsets, self.sampler, self.pool)
+        else:
+            if self._model_sampler is None:
+                mouth, q0 = self.geometry.nominal_mouth, self.geometry.q0
+                self._model_sampler = Sampler(
+                    self.arm, self.config.world, mouth, q0, self._n_worlds, self.device,
+                    self.believed_plant(), self.config.sim,
+                )  # fmt: skip
+            rolled = self._roll(act, offsets, self._model_sampler, None)
+        self.model_faults += int(rolled.fault.sum())
+        return self.score(rolled, offsets)
 
     def _roll(
         self,

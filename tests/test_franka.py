@@ -244,7 +244,7 @@ def test_learns_one_condition_then_evaluates_on_the_arm(fr3: Path, tmp_path: Pat
     assert "aborted by reflex" not in output
     assert "rollout 1 on the arm" in output
     assert entry["arm_rollouts"]["visit"] == 0 and entry["model_rollouts"] == 3
-    assert summary["model_rollouts"] == 3
+    assert summary["model_rollouts"] == 3 and summary["model_faults"] == 0
     # the arm's seconds: at least its rollouts' seconds under torque (T dt each)
     world = WorldConfig()
     rollouts = sum(entry["arm_rollouts"].values())

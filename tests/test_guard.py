@@ -398,6 +398,7 @@ def test_the_arms_model_runs_what_the_arm_would_without_counting_as_the_arm() ->
         assert torch.allclose(believed.x, on_arm.x, atol=1e-9)
         assert float((sagging.x - on_arm.x).abs().amax()) > 1e-3
         assert sum(carrying.arm_rollouts.values()) == 2 and carrying.model_rollouts == 2
+        assert carrying.model_faults == 0 == sum(carrying.arm_faults.values())
     finally:
         nominal.close()
         carrying.close()

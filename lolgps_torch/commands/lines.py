@@ -43,7 +43,10 @@ def condition_line(entry: ConditionSummary, total: int) -> str:
     stopped = sum(entry.arm_faults.values())
     seconds = "" if entry.arm_seconds is None else f", {entry.arm_seconds:.0f} s on the arm"
     if entry.model_rollouts:
-        seconds += f"; {entry.model_rollouts} rollouts on the arm's model"
+        seconds += (
+            f"; {entry.model_rollouts} rollouts on the arm's model ({entry.model_faults} "
+            "stopped at a limit)"
+        )
     return (
         f"condition {entry.condition + 1}/{total} done: first success at iteration "
         f"{entry.first_success_iteration}, p_cur distance {entry.local_final_distance:.4f}, "

@@ -291,7 +291,8 @@ def arm_rollouts(summary: list[ConditionSummary], start: int) -> dict[str, int]:
 
 def arm_use(summary: list[ConditionSummary]) -> dict[str, Any]:
     """The stream's rollouts stopped at a limit by kind (``arm_faults``, with their
-    ``total``), its rollouts on the arm's model instead (``model_rollouts``), and on a real
+    ``total``), its rollouts on the arm's model instead (``model_rollouts``, ``model_faults``
+    those stopped at a limit), and on a real
     arm its seconds (``arm_seconds``), summed over the conditions."""
     faults: Counter[str] = Counter()
     for entry in summary:
@@ -299,6 +300,7 @@ def arm_use(summary: list[ConditionSummary]) -> dict[str, Any]:
     use: dict[str, Any] = {
         "arm_faults": {**faults, "total": sum(faults.values())},
         "model_rollouts": sum(entry.model_rollouts for entry in summary),
+        "model_faults": sum(entry.model_faults for entry in summary),
     }
     seconds = [entry.arm_seconds for entry in summary if entry.arm_seconds is not None]
     if seconds:

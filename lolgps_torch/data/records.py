@@ -115,7 +115,8 @@ class ConditionSummary:
     :param arm_seconds: a real arm's seconds for the condition, under torque command and
         moving to the start pose (None in a simulator).
     :param model_rollouts: the policy's rollouts on the arm's model instead of the arm (the
-        S-step's visits with ``--visits model``).
+        S-step's visits with ``--visits model``), and ``model_faults`` those of them stopped at
+        a limit.
     """
 
     condition: int
@@ -139,6 +140,7 @@ class ConditionSummary:
     arm_faults: dict[str, int] = field(default_factory=dict)
     arm_seconds: float | None = None
     model_rollouts: int = 0
+    model_faults: int = 0
     policy_final_distance_end: float | None = None
     policy_success_end: bool | None = None
 

@@ -152,7 +152,10 @@ def _arm_use(folder: RunFolder) -> str:
         stopped = ", ".join(f"{n} {html.escape(k)}" for k, n in faults.items() if k != "total")
         text += f" Stopped at a limit while learning: {faults.get('total', 0)} ({stopped})."
     if summary.get("model_rollouts"):
-        text += f" Rollouts on the arm's model instead (visits): {summary['model_rollouts']}."
+        text += (
+            f" Rollouts on the arm's model instead (visits): {summary['model_rollouts']}"
+            f" ({summary.get('model_faults', 0)} stopped at a limit)."
+        )
     if "arm_seconds" in summary:
         text += f" Seconds on the arm while learning: {float(summary['arm_seconds']):.0f}."
     return text + "</p>"

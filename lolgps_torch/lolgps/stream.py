@@ -216,7 +216,8 @@ class StreamLearner:
         is planned during the S-step where a rollout worker is idle (:class:`PlannedStarts`)."""
         cfg, seed = self.config, condition_seed(self.config, index)
         counted, stopped = Counter(self.task.arm_rollouts), Counter(self.task.arm_faults)
-        seconds_before, simulated = self.task.arm_seconds(), self.task.model_rollouts
+        seconds_before = self.task.arm_seconds()
+        simulated, simulated_faults = self.task.model_rollouts, self.task.model_faults
         learner = LocalLearner(
             self.task, offset, cfg.local, seed, self.log, index, self.starts.plan,
             cfg.policy.limits(),
@@ -258,6 +259,7 @@ class StreamLearner:
             arm_faults={k: self.task.arm_faults[k] - stopped[k] for k in ROLLOUT_KINDS},
             arm_seconds=arm_seconds(self.task, seconds_before),
             model_rollouts=self.task.model_rollouts - simulated,
+            model_faults=self.task.model_faults - simulated_faults,
         )
         # Checkpoint first, replay last: a condition is complete once its replay group exists.
         save_policy(self.folder.checkpoint_dir(index), self.policy)
