@@ -19,7 +19,12 @@ samples:
 
   (rad, J^+ the pseudo-inverse), at ``--steps``.
 
-Then per run: the mean of the conditions' ``lateral`` and the largest ``free``.
+- ``aligned``: the first step at which the mean tip is within ``--within`` (mm, default 5)
+  of the hole's axis, ``|(p_tip - p*_tip)_xy|``: where the approach from the start pose ends
+  and the straight descent over the mouth begins.
+
+Then per run: the mean of the conditions' ``lateral``, the largest ``free`` and the range of
+``aligned``.
 """
 
 from __future__ import annotations
@@ -40,6 +45,18 @@ def lateral_errors(loaded: LoadedRun, first: int = 10) -> list[float]:
     last = max(first + 1, loaded.info.task.cost.descent_steps + 1)
     tip = [r.samples.x.mean(0)[first:last, layout.points][:, :2] for r in loaded.records]
     return [1000.0 * float(xy.norm(dim=-1).max()) for xy in tip]
+
+
+def aligned_steps(loaded: LoadedRun, within: float) -> list[int | None]:
+    """Each condition's first step at which its D_g mean tip is within ``within`` (mm) of the
+    hole's axis (None: never)."""
+    layout = loaded.info.task.world.layout(loaded.records[0].samples.u.shape[-1])
+    steps: list[int | None] = []
+    for record in loaded.records:
+        xy = record.samples.x.mean(0)[:, layout.points][:, :2]
+        near = (1000.0 * xy.norm(dim=-1) <= within).nonzero()
+        steps.append(int(near[0]) if len(near) else None)
+    return steps
 
 
 def free_differences(loaded: LoadedRun, steps: list[int]) -> list[tuple[int, list[float]]]:
@@ -70,6 +87,7 @@ def main() -> None:
     )
     parser.add_argument("runs", nargs="+", help="run folders")
     parser.add_argument("--steps", type=int, nargs="+", default=[10, 20, 40, 99])
+    parser.add_argument("--within", type=float, default=5.0, help="mm, for aligned")
     args = parser.parse_args()
     loaded = [load_run(path) for path in args.runs]
     for path, one in zip(args.runs, loaded, strict=True):
@@ -80,16 +98,22 @@ def main() -> None:
             raise LolgpsError(f"{path}: one condition, no neighbour to compare with")
     for path, one in zip(args.runs, loaded, strict=True):
         lateral, free = lateral_errors(one), free_differences(one, args.steps)
+        aligned = aligned_steps(one, args.within)
         print(f"{path}: lateral (mm); free posture difference to the nearest (rad) at steps "
-              f"{args.steps}")  # fmt: skip
-        for record, side, (n, gaps) in zip(one.records, lateral, free, strict=True):
+              f"{args.steps}; aligned (step)")  # fmt: skip
+        rows = zip(one.records, lateral, free, aligned, strict=True)
+        for record, side, (n, gaps), step in rows:
             print(
                 f"  condition {record.condition} ({record.iterations} iterations, nearest {n}): "
-                f"lateral {side:.1f}; free " + " ".join(f"{v:.3f}" for v in gaps)
+                f"lateral {side:.1f}; free "
+                + " ".join(f"{v:.3f}" for v in gaps)
+                + f"; aligned {step}"
             )
+        reached = [step for step in aligned if step is not None]
+        span = f"{min(reached)}-{max(reached)}" if reached else "never"
         print(
             f"  mean lateral {sum(lateral) / len(lateral):.1f} mm, "
-            f"largest free {max(max(gaps) for _, gaps in free):.3f} rad"
+            f"largest free {max(max(gaps) for _, gaps in free):.3f} rad, aligned at steps {span}"
         )
 
 
