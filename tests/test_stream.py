@@ -146,7 +146,8 @@ def test_teachers_measures_each_teacher_and_its_nearest(
 ) -> None:
     """Each of the two conditions is the other's nearest; its lateral error is a tip distance
     in mm; the free part of their difference is zero at the shared start pose and about the
-    same size from either side later; bad steps are refused."""
+    same size from either side later; each teacher's approach ends within the rollout (the
+    tip within 5 mm of the hole's axis: these teachers succeed); bad steps are refused."""
     cmd = ["scripts/research/teachers.py", str(small_run / "run")]
     result = run_script(*cmd, "--steps", "0", "5", "99")
     assert result.code == 0, result.err[-2000:]
@@ -155,10 +156,15 @@ def test_teachers_measures_each_teacher_and_its_nearest(
     assert "nearest 0)" in lines[2] and lines[2].strip().startswith("condition 1 (")
     lateral = [float(line.split("lateral ")[1].split(";")[0]) for line in lines[1:3]]
     assert all(0.0 <= side < 1000.0 for side in lateral)
-    first, second = ([float(v) for v in line.split("free ")[1].split()] for line in lines[1:3])
+    first, second = (
+        [float(v) for v in line.split("free ")[1].split(";")[0].split()] for line in lines[1:3]
+    )
     assert first[0] == second[0] == 0.0  # both start at the start pose
     assert all(v >= 0.0 for v in first + second) and first[2] == pytest.approx(second[2], rel=0.5)
+    aligned = [int(line.split("aligned ")[1]) for line in lines[1:3]]
+    assert all(0 < step < 100 for step in aligned)
     assert lines[3].strip().startswith("mean lateral ")
+    assert lines[3].strip().endswith(f"aligned at steps {min(aligned)}-{max(aligned)}")
     bad = run_script(*cmd, "--steps", "100")
     assert bad.code == 2 and bad.err.strip() == "error: --steps must lie in [0, 100), got [100]"
 
