@@ -22,6 +22,7 @@ from lolgps_torch.dynamics.parameters import ArmParameters, IdentifyConfig, iden
 from lolgps_torch.dynamics.transitions import TransitionStore
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.arm import load_arm
+from lolgps_torch.robot.effort import check_speeds
 from lolgps_torch.robot.ik import solve_ik
 from lolgps_torch.robot.kinematics import PegKinematics
 from lolgps_torch.robot.peg import PegConfig
@@ -31,11 +32,10 @@ from lolgps_torch.sim.arm_world import ArmSampler
 from lolgps_torch.sim.engines import engine_errors
 from lolgps_torch.sim.franka import SIMULATED, RealArmConfig
 from lolgps_torch.sim.model import LINK_DAMPING, ControlStep
-from lolgps_torch.sim.plant import PlantConfig
+from lolgps_torch.sim.plant import PlantConfig, believed_plant
 from lolgps_torch.sim.pool import RolloutPool, WorldSetup
 from lolgps_torch.sim.rollout import Actor, Rollouts, Sampler, rollout_rows
 from lolgps_torch.sim.simulator import Simulator, WorldConfig, check_plant, require
-from lolgps_torch.state import StateLayout
 from lolgps_torch.types import Trajectories
 
 RolloutKind = Literal["sample", "probe", "visit"]
@@ -126,14 +126,6 @@ class TaskConfig:
         return held
 
 
-def check_speeds(speeds: Sequence[float]) -> None:
-    """Raise :class:`LolgpsError` unless every one of ``speeds`` (``--velocity-limit``) is
-    positive and finite."""
-    bad = [v for v in speeds if not (math.isfinite(v) and v > 0.0)]
-    if bad:
-        raise LolgpsError(f"--velocity-limit must be positive and finite, got {bad[0]}")
-
-
 def load_task_arm(config: TaskConfig) -> ArmSpec:
     """The arm of the task ``config`` describes (:func:`~lolgps_torch.robot.arm.load_arm`),
     with the velocity limits it gives."""
@@ -155,13 +147,6 @@ def load_task_arm(config: TaskConfig) -> ArmSpec:
             f"{', '.join(arm.joint_names)}), got {len(given)}"
         )
     return replace(arm, velocity=given * arm.dof if len(given) == 1 else given)
-
-
-def peg_cost(config: CostConfig, arm: ArmSpec, kinematics: PegKinematics,
-             layout: StateLayout) -> PegCost:  # fmt: skip
-    """The l12 cost of ``arm``'s task, its torques and speeds scaled by the arm's limits."""
-    effort, velocity = (torch.tensor(v, dtype=torch.float64) for v in (arm.effort, arm.velocity))
-    return PegCost(config, kinematics, layout, effort, velocity)
 
 
 @dataclass(frozen=True)
@@ -189,7 +174,7 @@ class ArmModel:
         self.T = world.T
         self.q0 = torch.tensor(setup.q0, dtype=torch.float64, device=self.device)
         self.kinematics = PegKinematics(arm, self.device)
-        self.cost = peg_cost(setup.cost, arm, self.kinematics, self.layout)
+        self.cost = PegCost.of(setup.cost, arm, self.kinematics, self.layout)
         self.model = ControlStep(arm, world, device=self.device)
 
 
@@ -248,7 +233,7 @@ class PegTask:
         self.pool = RolloutPool(setup, workers, self.sampler) if parallel else None
         self._n_worlds, self._simulated = n_worlds, real.arm == "simulated"
         self._model_sampler: Sampler | None = None  # the model's own worlds (:meth:`simulate`)
-        self.cost = peg_cost(config.cost, self.arm, self.kinematics, self.layout)
+        self.cost = PegCost.of(config.cost, self.arm, self.kinematics, self.layout)
         self._model: ControlStep | None = None
         self._batches = 0  # batches sampled so far: the key of the next one's sensor noise
         #: the rollouts run on the arm so far, by kind (:meth:`sample`), and those of them its
@@ -396,33 +381,24 @@ class PegTask:
         self.arm_faults[kind] += int(rolled.fault.sum())
         return self.score(rolled, offsets)
 
-    def believed_plant(self) -> PlantConfig:
-        """The arm as the learner believes it is: its description in the task's simulator,
-        compensated for gravity by the learner where the arm was found not to be, acting
-        ``known_delay`` late, and none of what the learner is not told (a payload, friction,
-        other inertia, sensor noise)."""
-        world = self.config.world
-        return PlantConfig(
-            gravity_compensation="none" if world.compensate_gravity else "plant",
-            action_delay=world.known_delay,
-            limits=self.config.plant.limits,
-        )
-
     def simulate(self, act: Actor, offsets: Sequence[tuple[float, float]]) -> Trajectories:
-        """:meth:`sample` on the arm's model (:meth:`believed_plant`) instead of the arm,
-        counted in :attr:`model_rollouts`: on the task's own worlds where they simulate that
-        model (a simulated arm as the learner believes it), else on worlds of the model's own
-        in this process (a real arm's, or a simulated plant unlike its description). Those
-        stopped at a limit are counted in :attr:`model_faults`."""
+        """:meth:`sample` on the arm's model instead of the arm (its description as the learner
+        believes it, :func:`~lolgps_torch.sim.plant.believed_plant`), counted apart
+        (:attr:`model_rollouts`, :attr:`model_faults`): on the task's worlds where they are that
+        model, else (a real arm, a plant unlike its description) on its own, in this process."""
+        world = self.config.world
+        believed = believed_plant(
+            world.compensate_gravity, world.known_delay, self.config.plant.limits
+        )
         self.model_rollouts += len(offsets)
-        if self._simulated and self.config.plant == self.believed_plant():
+        if self._simulated and self.config.plant == believed:
             rolled = self._roll(act, offsets, self.sampler, self.pool)
         else:
             if self._model_sampler is None:
                 mouth, q0 = self.geometry.nominal_mouth, self.geometry.q0
                 self._model_sampler = Sampler(
-                    self.arm, self.config.world, mouth, q0, self._n_worlds, self.device,
-                    self.believed_plant(), self.config.sim,
+                    self.arm, world, mouth, q0, self._n_worlds, self.device, believed,
+                    self.config.sim,
                 )  # fmt: skip
             rolled = self._roll(act, offsets, self._model_sampler, None)
         self.model_faults += int(rolled.fault.sum())

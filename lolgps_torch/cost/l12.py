@@ -37,6 +37,7 @@ from torch import Tensor
 
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.kinematics import PegKinematics
+from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.state import StateLayout
 from lolgps_torch.types import QuadraticCost
 
@@ -92,6 +93,16 @@ class CostExpansion(NamedTuple):
 
 class PegCost:
     """Evaluates and expands the cost for batches of trajectories ``[N, T]``."""
+
+    @classmethod
+    def of(
+        cls, config: CostConfig, arm: ArmSpec, kinematics: PegKinematics, layout: StateLayout
+    ) -> PegCost:
+        """The cost of ``arm``'s task, its torques and speeds in units of the arm's limits."""
+        effort, velocity = (
+            torch.tensor(v, dtype=torch.float64) for v in (arm.effort, arm.velocity)
+        )
+        return cls(config, kinematics, layout, effort, velocity)
 
     def __init__(
         self,

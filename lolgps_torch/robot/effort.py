@@ -43,6 +43,7 @@ A derived limit is never faster than those arms allow a joint of the same lever.
 
 from __future__ import annotations
 
+import math
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
@@ -51,6 +52,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
+from lolgps_torch.errors import LolgpsError
 from lolgps_torch.robot.rigid_body import ArmDynamics
 from lolgps_torch.robot.spec import ArmSpec
 from lolgps_torch.robot.validate import ArmWarning
@@ -103,6 +105,14 @@ def joint_levers(arm: ArmSpec) -> Tensor:
     lever = dynamics.points(frames)[..., None, 0, :] - frames.p  # tip from each joint's origin
     radial = lever - (lever * axes).sum(-1, keepdim=True) * axes
     return radial.norm(dim=-1).amax(0)
+
+
+def check_speeds(speeds: Sequence[float]) -> None:
+    """Raise :class:`LolgpsError` unless every one of ``speeds`` (``--velocity-limit``) is
+    positive and finite."""
+    bad = [v for v in speeds if not (math.isfinite(v) and v > 0.0)]
+    if bad:
+        raise LolgpsError(f"--velocity-limit must be positive and finite, got {bad[0]}")
 
 
 def derived_velocity(arm: ArmSpec) -> tuple[float, ...]:

@@ -124,6 +124,16 @@ class PlantConfig:
 NOMINAL_PLANT = PlantConfig()  # the arm exactly as its URDF describes it
 
 
+def believed_plant(compensating: bool, delay: float, limits: Limits) -> PlantConfig:
+    """The arm as a learner believes it is: as its description has it, without gravity
+    compensation of its own where the learner adds it (``compensating``, after the probe found
+    none), acting ``delay`` s late (the delay it allows for), with the arm's ``limits``, and
+    none of what the learner is not told (a payload, friction, other inertia, sensor noise)."""
+    return PlantConfig(
+        gravity_compensation="none" if compensating else "plant", action_delay=delay, limits=limits
+    )
+
+
 def reshaped_urdf(text: str, factors: Mapping[str, float], added: Mapping[str, float]) -> str:
     """The URDF ``text`` with link ``name``'s mass and inertia tensor times ``factors[name]``
     and ``added[name]`` kg more mass at its centre of mass (links not named: unchanged)."""
