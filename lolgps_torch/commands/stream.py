@@ -290,10 +290,9 @@ def arm_rollouts(summary: list[ConditionSummary], start: int) -> dict[str, int]:
 
 
 def arm_use(summary: list[ConditionSummary]) -> dict[str, Any]:
-    """The stream's rollouts stopped at a limit by kind (``arm_faults``, with their
-    ``total``), its rollouts on the arm's model instead (``model_rollouts``, ``model_faults``
-    those stopped at a limit), and on a real
-    arm its seconds (``arm_seconds``), summed over the conditions."""
+    """Summed over the conditions: the rollouts stopped at a limit by kind (``arm_faults``,
+    with their ``total``), the rollouts on the arm's model instead (``model_rollouts``, and
+    ``model_faults`` those stopped), and on a real arm its seconds (``arm_seconds``)."""
     faults: Counter[str] = Counter()
     for entry in summary:
         faults.update(entry.arm_faults)
