@@ -169,6 +169,28 @@ def test_teachers_measures_each_teacher_and_its_nearest(
     assert bad.code == 2 and bad.err.strip() == "error: --steps must lie in [0, 100), got [100]"
 
 
+def test_mouth_finds_where_teachers_and_policy_come_down_to_the_mouth(
+    small_run: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    """The successful teachers reach the mouth's height over the hole (within its 4 mm
+    clearance) at the step the descent schedule brings the lifted targets there (h_0 = 0.2 m
+    falling to the 0.1 m deep floor at step 40: step 20), a step or two either side; the
+    policy's line and the summary count what the lines show."""
+    result = run_script("scripts/research/mouth.py", str(small_run / "run"))
+    assert result.code == 0, result.err[-2000:]
+    lines = result.out.strip().splitlines()
+    rows = [line.split("teachers ")[1] for line in lines[1:3]]
+    teachers = [(int(r.split(",")[0]), float(r.split(",")[1].split(";")[0])) for r in rows]
+    assert all(17 <= step <= 22 and 0.0 <= side < 4.0 for step, side in teachers)
+    policy = [line.split("policy ")[1].split(",") for line in lines[1:3]]
+    finals = [float(p[2].split()[0]) for p in policy]
+    wide = sum(1 for p in policy if p[0] == "None" or float(p[1]) > 4.0)
+    steps = [step for step, _ in teachers]
+    assert lines[3].strip().startswith(f"teachers steps {min(steps)}-{max(steps)}, ")
+    assert f"{wide} of 2 policy arrivals beyond the 4 mm clearance" in lines[3]
+    assert lines[3].endswith(f"{sum(f < 0.06 for f in finals)} of 2 reached")
+
+
 @pytest.mark.slow
 def test_trace_policy_traces_an_areas_misses(small_run: Path, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
