@@ -80,6 +80,26 @@ def test_a_run_reads_back_at_the_hole_and_start_pose_it_was_placed_at(small_run:
         task.close()
 
 
+def test_precision_share_splits_the_teachers_precision_over_the_windows(
+    small_run: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    """The windows asked for, each share in [0, 1], summing to 1 over the whole rollout and
+    to less over part of it; windows that do not rise within the rollout are refused."""
+    cmd = ["scripts/research/precision_share.py", str(small_run / "run")]
+    whole, part = (
+        run_script(*cmd, "--edges", *edges) for edges in (["0", "10", "100"], ["5", "50"])
+    )
+    assert whole.code == 0 and part.code == 0, whole.err[-2000:] + part.err[-2000:]
+    windows = whole.out.strip().split("by steps: ")[1].split(", ")
+    assert [w.split()[0] for w in windows] == ["0-9", "10-99"]
+    shares = [float(w.split()[1]) for w in windows]
+    assert all(0.0 <= s <= 1.0 for s in shares) and sum(shares) == pytest.approx(1.0, abs=0.011)
+    assert 0.0 <= float(part.out.strip().split("5-49 ")[1]) < 1.0
+    bad = run_script(*cmd, "--edges", "0", "101")
+    assert bad.code == 2
+    assert bad.err.strip() == "error: --edges must rise from 0 or more to at most 100, got [0, 101]"
+
+
 @pytest.mark.slow  # a second CI stream; test_kill_resume's resumed run also ends at its summary
 def test_same_seed_gives_same_summary(small_run: Path, tmp_path: Path) -> None:
     log = tmp_path / "again.log"
@@ -173,15 +193,18 @@ def test_mouth_finds_where_teachers_and_policy_come_down_to_the_mouth(
     small_run: Path, run_script: Callable[..., ScriptRun]
 ) -> None:
     """The successful teachers reach the mouth's height over the hole (within its 4 mm
-    clearance) at the step the descent schedule brings the lifted targets there (h_0 = 0.2 m
-    falling to the 0.1 m deep floor at step 40: step 20), a step or two either side; the
-    policy's line and the summary count what the lines show."""
+    clearance) at the step the descent schedule brings the lifted targets there,
+    ``t_d (1 - depth / h_0)``, a step or two either side; the policy's line and the summary
+    count what the lines show."""
     result = run_script("scripts/research/mouth.py", str(small_run / "run"))
     assert result.code == 0, result.err[-2000:]
+    task = json.loads((small_run / "run" / "config.json").read_text())["task"]
+    cost, depth = task["cost"], task["world"]["depth"]
+    due = cost["descent_steps"] * (1.0 - depth / cost["descent_height"])
     lines = result.out.strip().splitlines()
     rows = [line.split("teachers ")[1] for line in lines[1:3]]
     teachers = [(int(r.split(",")[0]), float(r.split(",")[1].split(";")[0])) for r in rows]
-    assert all(17 <= step <= 22 and 0.0 <= side < 4.0 for step, side in teachers)
+    assert all(abs(step - due) <= 2.5 and 0.0 <= side < 4.0 for step, side in teachers)
     policy = [line.split("policy ")[1].split(",") for line in lines[1:3]]
     finals = [float(p[2].split()[0]) for p in policy]
     wide = sum(1 for p in policy if p[0] == "None" or float(p[1]) > 4.0)
