@@ -60,7 +60,7 @@ class CostConfig:
         up to 21 mm beside it (12 KUKA seeds, ``scripts/research/mouth.py``).
     :param speed_weight: wv in units of the velocity limits. Its curvature enters the
         teachers' precision wherever a joint passes the free share, along the approach: with
-        10 that held 78-84 % of the S-step's weight in steps 0-9, and the policy was fitted
+        10 that held 77-84 % of the S-step's weight in steps 0-9, and the policy was fitted
         loosely in the descent into the hole (``scripts/research/precision_share.py``).
     :param speed_free: s, the share of each joint's velocity limit below which speed is free.
     """
