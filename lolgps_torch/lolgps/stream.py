@@ -12,7 +12,8 @@
             p_cur <- argmin E[cost] s.t. KL(p_cur || p_bar) <= eps                (eq. 7)
                      (p_bar = p_pre with cstep_anchor "pre", else the previous p_cur)
             D_g(m) += successful rollouts of D_i
-        until successful samples from ``phases`` iterations are in D_g(m), or a limit
+        until successful samples from ``phases`` iterations are in D_g(m), or the mean cost
+              has settled after ``settle_phases`` of them, or a limit
         label D_g(m) with the final p_cur and p_pre (if its noiseless rollout misses: with
             the newest successfully sampled ones whose noiseless rollout succeeds)
         pi <- argmin KL(pi || p_cur) + lambda KL(pi || p_pre) over D_g(m) + replay D_g(<m) (eq. 8)
@@ -76,6 +77,11 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
+    :param settle_phases: where ``success_phases`` are needed, local learning stops as soon
+        as this many iterations had successful samples and the samples' mean cost has settled:
+        the last iteration's within ``settle_tolerance`` (relative) of the one before.
+    :param settle_tolerance: the settled cost's tolerance (0: never settled, every condition
+        runs its ``success_phases``, as in the paper).
     :param transfer: forward transfer: none (the paper: ``success_phases`` at every
         condition), or policy: where the trained policy's noiseless rollout at a new
         condition already succeeds (one probe rollout), local learning stops after
@@ -115,6 +121,8 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
+    settle_phases: int = 3
+    settle_tolerance: float = 0.02
     transfer: Transfer = "policy"
     transfer_phases: int = 2
     repairs: int = 6
@@ -123,7 +131,7 @@ class StreamConfig:
     onpolicy_noisy: int = 2
     onpolicy_gate: float = 3.0
     onpolicy_floor: float = 0.005
-    visits: VisitsOn = "arm"
+    visits: VisitsOn = "model"
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -147,6 +155,8 @@ class StreamConfig:
                 "augment": self.augment >= 0,
                 "augment_scale": 0.0 <= self.augment_scale < float("inf"),
                 "max_iterations": self.max_iterations >= 1,
+                "settle_phases": self.settle_phases >= 1,
+                "settle_tolerance": 0.0 <= self.settle_tolerance < float("inf"),
                 "repairs": self.repairs >= 0,
                 "onpolicy_rounds": self.onpolicy_rounds >= 0,
                 "onpolicy_noisy": self.onpolicy_noisy >= 0,
@@ -314,12 +324,13 @@ class StreamLearner:
         probes: int = 0,
     ) -> Outcome:
         """Algorithm 2's inner loop: iterations of sample, fit, p_pre and C-step until
-        ``phases`` iterations had successful samples, or the limit. A numerical failure ends
-        the loop and is reported; the stream goes on. The rollouts counted include ``probes``
-        already spent at the condition."""
+        ``phases`` iterations had successful samples, or the cost settled (:meth:`settled`),
+        or the limit. A numerical failure ends the loop and is reported; the stream goes on.
+        The rollouts counted include ``probes`` already spent at the condition."""
         cfg = self.config
         p_pre: LinearGaussian | None = None
         alpha, found, iterations, failure, faults = cfg.alpha, Successes(), 0, None, 0
+        costs: list[float] = []
         try:
             for i in range(cfg.max_iterations):
                 iterations, p_cur = i + 1, learner.p_cur
@@ -332,13 +343,23 @@ class StreamLearner:
                 faults += record.faults
                 found.add(samples, Labels(p_cur, p_pre, i))
                 alpha = cfg.next_alpha(alpha)
-                if len(found.kept) >= phases:
+                costs.append(record.mean_cost)
+                if len(found.kept) >= phases or self.settled(costs, len(found.kept)):
                     break
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"
         rollouts = probes + iterations * cfg.local.samples
         final = Labels(learner.p_cur, p_pre, iterations)
         return Outcome(found, final, rollouts, failure, faults)
+
+    def settled(self, costs: list[float], kept: int) -> bool:
+        """Local learning has converged: ``settle_phases`` iterations with successful samples,
+        and the samples' mean cost c_i of the last iteration within ``settle_tolerance`` of
+        the one before, ``|c_i - c_{i-1}| <= tol c_i``."""
+        cfg = self.config
+        if cfg.settle_tolerance == 0.0 or kept < cfg.settle_phases or len(costs) < 2:
+            return False
+        return abs(costs[-1] - costs[-2]) <= cfg.settle_tolerance * abs(costs[-1])
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own

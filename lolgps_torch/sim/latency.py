@@ -63,7 +63,7 @@ class DelayConfig:
     :param seed: seed of the excitation's commands.
     """
 
-    rollouts: int = 128
+    rollouts: int = 64
     steps: int = 5
     speed: float = 0.05
     longest: float = 0.1
