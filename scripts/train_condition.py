@@ -40,7 +40,7 @@ from lolgps_torch.data.records import IterationRecord
 from lolgps_torch.data.run_folder import RunFolder, arm_urdf, as_stored, task_json
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, iterate
-from lolgps_torch.lolgps.stream import noiseless_distance
+from lolgps_torch.lolgps.probes import noiseless_distance
 from lolgps_torch.policy import PolicyConfig
 from lolgps_torch.robot.placement import pinned
 from lolgps_torch.task import PegTask

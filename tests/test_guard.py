@@ -14,7 +14,7 @@ import torch
 
 from lolgps_torch.data.checkpoint import load_policy, save_policy
 from lolgps_torch.lolgps.local import LocalConfig, LocalLearner, initial_controller
-from lolgps_torch.lolgps.stream import noiseless_distance
+from lolgps_torch.lolgps.probes import noiseless_distance
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig, policy_actor
 from lolgps_torch.policy.actor import controller_actor
 from lolgps_torch.policy.guard import Guard, fit_guard, guarded, within_limits

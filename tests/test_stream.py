@@ -19,9 +19,10 @@ from conftest import ScriptRun, ci_stream_command, finish_script, start_script
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
+from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.distillation import Labels
 from lolgps_torch.lolgps.onpolicy import Checked, CheckedSStep, Visit
-from lolgps_torch.lolgps.stream import Outcome, StreamLearner, Successes
+from lolgps_torch.lolgps.stream import Outcome, StreamConfig, StreamLearner, Successes
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
 from lolgps_torch.types import Trajectories
 
@@ -439,3 +440,46 @@ def test_first_controller_rolls_out_a_runs_first_controller_in_each_simulator(
     missing = run_script(script, "--run", str(small_run / "run"), "--conditions", "9")
     assert missing.code == 2
     assert missing.err.startswith("error: conditions [9] not in the run's 2")
+
+
+def test_local_learning_settles_after_its_phases_on_a_flat_cost() -> None:
+    """Settled: at least ``settle_phases`` iterations with successes and the last cost within
+    the tolerance of the one before; never with a tolerance of 0 (the paper's fixed phases)."""
+    config = StreamConfig(settle_phases=3, settle_tolerance=0.02)
+    assert not config.settled([1.5, 1.40, 1.39], kept=2)  # too few phases
+    assert config.settled([1.5, 1.40, 1.39], kept=3)
+    assert not config.settled([1.5, 1.40, 1.30], kept=3)  # still falling by 7 %
+    assert not config.settled([1.4], kept=3)
+    assert not config.settled([1.5, float("nan"), float("nan")], kept=3)
+    assert not StreamConfig(settle_tolerance=0.0).settled([1.4, 1.4, 1.4], kept=3)
+    with pytest.raises(LolgpsError, match="settle_tolerance"):
+        StreamConfig(settle_tolerance=-0.1)
+
+
+def test_local_convergence_finds_where_each_full_condition_settles(
+    tmp_path: Path, run_script: Callable[..., ScriptRun]
+) -> None:
+    """From a run's metrics: the iteration from which the cost stays within the tolerance of
+    the last, the first all-successful one; transferred conditions (fewer iterations) left
+    out; a folder without runs refused in one line."""
+    run = tmp_path / "sweep" / "run"
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"stream": {"success_phases": 4}}))
+    costs = {0: [3.0, 2.0, 1.5, 1.51], 1: [2.0, 1.9, 1.8, 1.0], 2: [1.2, 1.1]}
+    (run / "metrics.jsonl").write_text(
+        "\n".join(
+            json.dumps(
+                {"condition": c, "iteration": i, "mean_cost": v, "success_rate": 1.0 if i else 0.4}
+            )
+            for c, values in costs.items()
+            for i, v in enumerate(values)
+        )
+    )
+    result = run_script("scripts/research/local_convergence.py", str(tmp_path / "sweep"))
+    assert result.code == 0, result.err[-2000:]
+    rows = [line.split() for line in result.out.splitlines()[1:] if line.startswith("run ")]
+    assert [r[1:5] for r in rows] == [["0", "4", "2", "1"], ["1", "4", "3", "1"]]
+    assert "2 conditions; settled at iteration: {2: 1, 3: 1}" in result.out
+    assert "  3 phases: 1 stopped before settling, 10 sample rollouts saved" in result.out
+    empty = run_script("scripts/research/local_convergence.py", str(tmp_path / "none"))
+    assert empty.code == 2 and empty.err.strip().startswith("error: no run folder")

@@ -30,14 +30,8 @@ from lolgps_torch.dynamics import GMMPrior, prior_from_config
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label
 from lolgps_torch.lolgps.local import Linearizer, LocalLearner, iterate
-from lolgps_torch.lolgps.stream import (
-    Log,
-    StreamConfig,
-    Successes,
-    condition_seed,
-    noiseless_distance,
-    policy_distances,
-)
+from lolgps_torch.lolgps.probes import noiseless_distance, policy_distances
+from lolgps_torch.lolgps.stream import Log, StreamConfig, Successes, condition_seed
 from lolgps_torch.policy import GaussianPolicy, linearize_policy
 from lolgps_torch.task import PegTask
 from lolgps_torch.types import LinearGaussian

@@ -26,14 +26,11 @@ Naive sequential learning is the same loop without p_pre and without the replay.
 
 from __future__ import annotations
 
-import math
 import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple, get_args
-
-import torch
 
 from lolgps_torch.controllers import mix
 from lolgps_torch.data import ReplayBuffer
@@ -51,8 +48,8 @@ from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, label
 from lolgps_torch.lolgps.local import Linearizer, LocalConfig, LocalLearner, iterate
 from lolgps_torch.lolgps.onpolicy import CheckedSStep, PolicyVisits, VisitsOn
 from lolgps_torch.lolgps.plans import PlannedStarts
-from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy, policy_actor
-from lolgps_torch.policy.actor import controller_actor
+from lolgps_torch.lolgps.probes import noiseless_distance, policy_distances
+from lolgps_torch.policy import GaussianPolicy, PolicyConfig, linearize_policy
 from lolgps_torch.task import ROLLOUT_KINDS, PegTask
 from lolgps_torch.types import LinearGaussian, Trajectories
 
@@ -77,9 +74,11 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
-    :param settle_phases: where ``success_phases`` are needed, local learning stops as soon
-        as this many iterations had successful samples and the samples' mean cost has settled:
-        the last iteration's within ``settle_tolerance`` (relative) of the one before.
+    :param settle_phases: local learning at a condition stops before its phases are complete
+        once this many iterations had successful samples and the samples' mean cost has
+        settled: the last iteration's within ``settle_tolerance`` (relative) of the one before
+        (the cost is flat from the third or fourth iteration on most conditions, while the
+        paper's 9 phases cost 45 rollouts: ``scripts/research/local_convergence.py``).
     :param settle_tolerance: the settled cost's tolerance (0: never settled, every condition
         runs its ``success_phases``, as in the paper).
     :param transfer: forward transfer: none (the paper: ``success_phases`` at every
@@ -170,6 +169,14 @@ class StreamConfig:
     def next_alpha(self, alpha: float) -> float:
         """The weight of p_pre at the next iteration."""
         return min(1.0, alpha + self.alpha_step) if self.alpha_schedule == "dynamic" else alpha
+
+    def settled(self, costs: list[float], kept: int) -> bool:
+        """Local learning has converged: ``settle_phases`` iterations with successful samples,
+        and the samples' mean cost c_i of the last iteration within ``settle_tolerance`` of
+        the one before, ``|c_i - c_{i-1}| <= tol c_i``."""
+        if self.settle_tolerance == 0.0 or kept < self.settle_phases or len(costs) < 2:
+            return False
+        return abs(costs[-1] - costs[-2]) <= self.settle_tolerance * abs(costs[-1])
 
 
 class Outcome(NamedTuple):
@@ -324,7 +331,8 @@ class StreamLearner:
         probes: int = 0,
     ) -> Outcome:
         """Algorithm 2's inner loop: iterations of sample, fit, p_pre and C-step until
-        ``phases`` iterations had successful samples, or the cost settled (:meth:`settled`),
+        ``phases`` iterations had successful samples, or the cost settled
+        (:meth:`StreamConfig.settled`),
         or the limit. A numerical failure ends the loop and is reported; the stream goes on.
         The rollouts counted include ``probes`` already spent at the condition."""
         cfg = self.config
@@ -344,22 +352,13 @@ class StreamLearner:
                 found.add(samples, Labels(p_cur, p_pre, i))
                 alpha = cfg.next_alpha(alpha)
                 costs.append(record.mean_cost)
-                if len(found.kept) >= phases or self.settled(costs, len(found.kept)):
+                if len(found.kept) >= phases or cfg.settled(costs, len(found.kept)):
                     break
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"
         rollouts = probes + iterations * cfg.local.samples
         final = Labels(learner.p_cur, p_pre, iterations)
         return Outcome(found, final, rollouts, failure, faults)
-
-    def settled(self, costs: list[float], kept: int) -> bool:
-        """Local learning has converged: ``settle_phases`` iterations with successful samples,
-        and the samples' mean cost c_i of the last iteration within ``settle_tolerance`` of
-        the one before, ``|c_i - c_{i-1}| <= tol c_i``."""
-        cfg = self.config
-        if cfg.settle_tolerance == 0.0 or kept < cfg.settle_phases or len(costs) < 2:
-            return False
-        return abs(costs[-1] - costs[-2]) <= cfg.settle_tolerance * abs(costs[-1])
 
     def linearizer(self) -> Linearizer | None:
         """p_pre's fit around a batch of samples (GMM-prior regression on the policy's own
@@ -429,31 +428,3 @@ def arm_seconds(task: PegTask, before: float | None) -> float | None:
 def condition_seed(config: StreamConfig, index: int) -> int:
     """The seed of condition ``index``'s sampling and S-step."""
     return config.seed * 1000 + index
-
-
-def noiseless_distance(
-    task: PegTask,
-    p: LinearGaussian,
-    offset: tuple[float, float],
-    limits: tuple[float, float] | None,
-) -> float:
-    """Final distance (m) of the controller ``p``'s noiseless rollout at ``offset``, kept
-    within ``limits`` as its samples are (:func:`~lolgps_torch.policy.actor.controller_actor`)."""
-    zero = torch.zeros(1, task.T, task.layout.dU, dtype=torch.float64, device=task.device)
-    actor = controller_actor(p, zero, task.model, limits)
-    return float(task.sample(actor, [offset], "probe").scored_distance[0])
-
-
-def policy_distances(
-    task: PegTask, policy: GaussianPolicy, offsets: list[tuple[float, float]]
-) -> list[float]:
-    """Final distances (m) of the global policy's noiseless rollouts (NaN untrained; inf at
-    every offset where the batch blew the simulation up)."""
-    if not policy.trained:
-        return [float("nan")] * len(offsets)
-    try:
-        return task.sample(
-            policy_actor(policy, task.model), offsets, "probe"
-        ).scored_distance.tolist()
-    except NumericalError:
-        return [math.inf] * len(offsets)

@@ -24,12 +24,12 @@ from lolgps_torch.errors import LolgpsError
 
 
 class Condition(NamedTuple):
-    """One condition learnt without transfer: its run, index, iterations run, the first
+    """One condition learnt without transfer: its run and index, the iterations run, the first
     iteration at which the cost stays within the tolerance of the last, and the first whose
     samples all succeed (-1: none)."""
 
     run: str
-    index: int
+    condition: int
     iterations: int
     settled: int
     all_succeed: int
@@ -96,7 +96,9 @@ def main() -> None:
     print(f"{'run':40} cond iters settled all-succeed  mean cost by iteration")
     for c in found:
         costs = " ".join(f"{v:.3f}" for v in c.costs)
-        print(f"{c.run:40} {c.index:4} {c.iterations:5} {c.settled:7} {c.all_succeed:11}  {costs}")
+        print(
+            f"{c.run:40} {c.condition:4} {c.iterations:5} {c.settled:7} {c.all_succeed:11}  {costs}"
+        )
     if not found:
         print("no condition ran its full phases")
         return

@@ -56,8 +56,9 @@ from lolgps_torch.dynamics import fit as fit_module
 from lolgps_torch.dynamics.fit import gaussian_regression
 from lolgps_torch.lolgps import local as local_module
 from lolgps_torch.lolgps.local import Fit, LocalLearner
+from lolgps_torch.lolgps.probes import noiseless_distance
 from lolgps_torch.lolgps.run import read_run
-from lolgps_torch.lolgps.stream import StreamConfig, condition_seed, noiseless_distance
+from lolgps_torch.lolgps.stream import StreamConfig, condition_seed
 from lolgps_torch.policy import linearize_policy
 from lolgps_torch.sim.reflex import Reflex
 from lolgps_torch.task import PegTask

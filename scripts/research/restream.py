@@ -43,13 +43,9 @@ from lolgps_torch.errors import LolgpsError
 from lolgps_torch.evaluation.areas import AreaConfig, sample_area_positions
 from lolgps_torch.evaluation.retention import fit_by_window
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels, consistent_states
+from lolgps_torch.lolgps.probes import policy_distances
 from lolgps_torch.lolgps.run import load_run
-from lolgps_torch.lolgps.stream import (
-    StreamConfig,
-    checked_sstep,
-    condition_seed,
-    policy_distances,
-)
+from lolgps_torch.lolgps.stream import StreamConfig, checked_sstep, condition_seed
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
 from lolgps_torch.task import PegTask

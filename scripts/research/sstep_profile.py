@@ -41,8 +41,8 @@ from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.run_folder import RunFolder
 from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.distillation import Distiller, Labelled, Labels
+from lolgps_torch.lolgps.probes import policy_distances
 from lolgps_torch.lolgps.run import load_run
-from lolgps_torch.lolgps.stream import policy_distances
 from lolgps_torch.policy import GaussianPolicy
 from lolgps_torch.policy.net import AdamDtype
 from lolgps_torch.policy.sstep import _row_constants, set_statistics
