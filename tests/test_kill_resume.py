@@ -87,6 +87,7 @@ def _group_bytes(path: Path, group: str) -> dict[str, bytes]:
         return {name: np.asarray(ds).tobytes() for name, ds in f[group].items()}
 
 
+@pytest.mark.slow  # three kills and resumes; the default suite kills once (below)
 def test_killed_three_times_the_resumed_run_ends_as_the_uninterrupted_one(
     reference: Path, tmp_path: Path
 ) -> None:
@@ -119,14 +120,36 @@ def test_killed_three_times_the_resumed_run_ends_as_the_uninterrupted_one(
     assert ReplayBuffer(replay).conditions() == [0]
     assert _group_bytes(replay, "condition_000") == first
 
-    log = tmp_path / "stream.log"
+    _resumed_to_the_end(command, out, reference)
+
+
+def test_killed_while_writing_the_replay_the_resumed_run_ends_as_the_uninterrupted_one(
+    reference: Path, tmp_path: Path
+) -> None:
+    """The default suite's kill: the run SIGKILLed while the first condition's replay group
+    is being appended (moment (c) above, before any condition was complete), then resumed,
+    ends with the uninterrupted run's summary.json, replay and final policy."""
+    out = tmp_path / "run"
+    command = _command(tmp_path, out)
+    _kill_at(command, out, _replay_partial, poll=0.001)
+    assert (out / "replay.h5.partial").exists(), "killed after the append, not during it"
+    assert not (out / "replay.h5").exists()
+    _resumed_to_the_end(command, out, reference)
+
+
+def _resumed_to_the_end(command: list[str], out: Path, reference: Path) -> None:
+    """Resume the run in ``out`` to its end; it must end with ``reference``'s summary.json,
+    replay groups and final policy, and no partial replay."""
+    log = out.parent / "stream.log"
     code = finish_script(start_script([*command, "--resume"], log), log)
     assert code == 0, log.read_text()[-2000:]
     assert not (out / "replay.h5.partial").exists()
     summary = json.loads((out / "summary.json").read_text())
     assert summary == json.loads((reference / "summary.json").read_text())
     for group in ("condition_000", "condition_001"):
-        assert _group_bytes(replay, group) == _group_bytes(reference / "replay.h5", group)
+        assert _group_bytes(out / "replay.h5", group) == _group_bytes(
+            reference / "replay.h5", group
+        )
     final = out / "checkpoints" / "after_condition_001"
     ours, theirs = (
         load_policy(p).state_dict() for p in (final, reference / final.relative_to(out))
