@@ -133,7 +133,7 @@ class StreamConfig:
     onpolicy_noisy: int = 2
     onpolicy_gate: float = 3.0
     onpolicy_floor: float = 0.005
-    visits: VisitsOn = "model"
+    visits: VisitsOn = "arm"
     seed: int = 0
     local: LocalConfig = field(default_factory=LocalConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
