@@ -19,10 +19,9 @@ from conftest import ScriptRun, ci_stream_command, finish_script, start_script
 
 from lolgps_torch.data import ReplayBuffer
 from lolgps_torch.data.checkpoint import load_policy
-from lolgps_torch.errors import LolgpsError
 from lolgps_torch.lolgps.distillation import Labels
 from lolgps_torch.lolgps.onpolicy import Checked, CheckedSStep, Visit
-from lolgps_torch.lolgps.stream import Outcome, StreamConfig, StreamLearner, Successes
+from lolgps_torch.lolgps.stream import Outcome, StreamLearner, Successes
 from lolgps_torch.policy import GaussianPolicy, PolicyConfig
 from lolgps_torch.types import Trajectories
 
@@ -440,20 +439,6 @@ def test_first_controller_rolls_out_a_runs_first_controller_in_each_simulator(
     missing = run_script(script, "--run", str(small_run / "run"), "--conditions", "9")
     assert missing.code == 2
     assert missing.err.startswith("error: conditions [9] not in the run's 2")
-
-
-def test_local_learning_settles_after_its_phases_on_a_flat_cost() -> None:
-    """Settled: at least ``settle_phases`` iterations with successes and the last cost within
-    the tolerance of the one before; never with a tolerance of 0 (the paper's fixed phases)."""
-    config = StreamConfig(settle_phases=3, settle_tolerance=0.02)
-    assert not config.settled([1.5, 1.40, 1.39], kept=2)  # too few phases
-    assert config.settled([1.5, 1.40, 1.39], kept=3)
-    assert not config.settled([1.5, 1.40, 1.30], kept=3)  # still falling by 7 %
-    assert not config.settled([1.4], kept=3)
-    assert not config.settled([1.5, float("nan"), float("nan")], kept=3)
-    assert not StreamConfig(settle_tolerance=0.0).settled([1.4, 1.4, 1.4], kept=3)
-    with pytest.raises(LolgpsError, match="settle_tolerance"):
-        StreamConfig(settle_tolerance=-0.1)
 
 
 def test_local_convergence_finds_where_each_full_condition_settles(

@@ -13,7 +13,6 @@
                      (p_bar = p_pre with cstep_anchor "pre", else the previous p_cur)
             D_g(m) += successful rollouts of D_i
         until successful samples from ``phases`` iterations are in D_g(m), or a limit
-              (or, with a settle tolerance, the mean cost has settled after ``settle_phases``)
         label D_g(m) with the final p_cur and p_pre (if its noiseless rollout misses: with
             the newest successfully sampled ones whose noiseless rollout succeeds)
         pi <- argmin KL(pi || p_cur) + lambda KL(pi || p_pre) over D_g(m) + replay D_g(<m) (eq. 8)
@@ -74,16 +73,6 @@ class StreamConfig:
     :param augment: perturbed copies of each D_g state in the S-step.
     :param augment_scale: perturbation size, in per-step standard deviations of D_g's states.
     :param max_iterations: iteration limit per condition.
-    :param settle_phases: with a ``settle_tolerance``, local learning at a condition stops
-        before its phases are complete once this many iterations had successful samples and
-        the samples' mean cost has settled: the last iteration's within ``settle_tolerance``
-        (relative) of the one before (``scripts/research/local_convergence.py``).
-    :param settle_tolerance: the settled cost's tolerance (0: never settled, every condition
-        runs its ``success_phases``, as in the paper). With 0.02 and 3 phases, 12 KUKA streams
-        took 90-120 samples instead of 150-185, at the same positions and test areas; but the
-        FR3 (MJCF) reached 4 of 8 positions on one of 3 seeds (8 of 8 without), and its
-        average final success and the Panda's fell (docs/HISTORY.md): a 7-joint arm's policy
-        needs the data of the remaining phases.
     :param transfer: forward transfer: none (the paper: ``success_phases`` at every
         condition), or policy: where the trained policy's noiseless rollout at a new
         condition already succeeds (one probe rollout), local learning stops after
@@ -123,8 +112,6 @@ class StreamConfig:
     augment: int = 4
     augment_scale: float = 2.0
     max_iterations: int = 25
-    settle_phases: int = 3
-    settle_tolerance: float = 0.0
     transfer: Transfer = "policy"
     transfer_phases: int = 2
     repairs: int = 6
@@ -157,8 +144,6 @@ class StreamConfig:
                 "augment": self.augment >= 0,
                 "augment_scale": 0.0 <= self.augment_scale < float("inf"),
                 "max_iterations": self.max_iterations >= 1,
-                "settle_phases": self.settle_phases >= 1,
-                "settle_tolerance": 0.0 <= self.settle_tolerance < float("inf"),
                 "repairs": self.repairs >= 0,
                 "onpolicy_rounds": self.onpolicy_rounds >= 0,
                 "onpolicy_noisy": self.onpolicy_noisy >= 0,
@@ -172,14 +157,6 @@ class StreamConfig:
     def next_alpha(self, alpha: float) -> float:
         """The weight of p_pre at the next iteration."""
         return min(1.0, alpha + self.alpha_step) if self.alpha_schedule == "dynamic" else alpha
-
-    def settled(self, costs: list[float], kept: int) -> bool:
-        """Local learning has converged: ``settle_phases`` iterations with successful samples,
-        and the samples' mean cost c_i of the last iteration within ``settle_tolerance`` of
-        the one before, ``|c_i - c_{i-1}| <= tol c_i``."""
-        if self.settle_tolerance == 0.0 or kept < self.settle_phases or len(costs) < 2:
-            return False
-        return abs(costs[-1] - costs[-2]) <= self.settle_tolerance * abs(costs[-1])
 
 
 class Outcome(NamedTuple):
@@ -334,14 +311,12 @@ class StreamLearner:
         probes: int = 0,
     ) -> Outcome:
         """Algorithm 2's inner loop: iterations of sample, fit, p_pre and C-step until
-        ``phases`` iterations had successful samples, or the cost settled
-        (:meth:`StreamConfig.settled`),
-        or the limit. A numerical failure ends the loop and is reported; the stream goes on.
-        The rollouts counted include ``probes`` already spent at the condition."""
+        ``phases`` iterations had successful samples, or the limit. A numerical failure ends
+        the loop and is reported; the stream goes on. The rollouts counted include ``probes``
+        already spent at the condition."""
         cfg = self.config
         p_pre: LinearGaussian | None = None
         alpha, found, iterations, failure, faults = cfg.alpha, Successes(), 0, None, 0
-        costs: list[float] = []
         try:
             for i in range(cfg.max_iterations):
                 iterations, p_cur = i + 1, learner.p_cur
@@ -354,8 +329,7 @@ class StreamLearner:
                 faults += record.faults
                 found.add(samples, Labels(p_cur, p_pre, i))
                 alpha = cfg.next_alpha(alpha)
-                costs.append(record.mean_cost)
-                if len(found.kept) >= phases or cfg.settled(costs, len(found.kept)):
+                if len(found.kept) >= phases:
                     break
         except NumericalError as error:
             failure = f"iteration {iterations - 1}: {error}"
