@@ -467,4 +467,4 @@ def test_local_convergence_finds_where_each_full_condition_settles(
     assert "2 conditions; settled at iteration: {2: 1, 3: 1}" in result.out
     assert "  3 phases: 1 stopped before settling, 10 sample rollouts saved" in result.out
     empty = run_script("scripts/research/local_convergence.py", str(tmp_path / "none"))
-    assert empty.code == 2 and empty.err.strip().startswith("error: no run folder")
+    assert empty.code == 2 and empty.err.strip().endswith(": no run (config.json) in it")

@@ -302,13 +302,19 @@ class RunFolder:
             raise write_error(self.metrics_path, error) from error
 
 
+def runs_holding(folder: str | Path, name: str, what: str) -> list[Path]:
+    """``folder`` if it holds the file ``name``, else its subfolders that do (a sweep's); none
+    is a :class:`LolgpsError` naming ``what`` was looked for."""
+    folder = Path(folder)
+    if (folder / name).is_file():
+        return [folder]
+    found = sorted(p.parent for p in folder.glob(f"*/{name}"))
+    if not found:
+        raise LolgpsError(f"{folder}: no {what} ({name}) in it")
+    return found
+
+
 def evaluated_runs(folder: str | Path) -> list[Path]:
     """``folder`` if it is an evaluated run (it holds an ``eval.json``), else its evaluated
     run subfolders (a sweep's); none is a :class:`LolgpsError`."""
-    folder = Path(folder)
-    if (folder / EVAL_FILE).is_file():
-        return [folder]
-    found = sorted(p.parent for p in folder.glob(f"*/{EVAL_FILE}"))
-    if not found:
-        raise LolgpsError(f"{folder}: no evaluated run ({EVAL_FILE}) in it")
-    return found
+    return runs_holding(folder, EVAL_FILE, "evaluated run")

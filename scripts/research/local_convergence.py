@@ -19,8 +19,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from lolgps_torch.cli import run
-from lolgps_torch.data.run_folder import CONFIG_FILE
-from lolgps_torch.errors import LolgpsError
+from lolgps_torch.data.run_folder import CONFIG_FILE, read_json, runs_holding
 
 
 class Condition(NamedTuple):
@@ -50,7 +49,7 @@ def settled_at(costs: list[float], within: float) -> int:
 
 def conditions(folder: Path, within: float) -> list[Condition]:
     """The conditions of the run ``folder`` that ran ``success_phases`` iterations."""
-    config = json.loads((folder / CONFIG_FILE).read_text())
+    config = read_json(folder / CONFIG_FILE)
     phases = config["stream"]["success_phases"]
     rows: dict[int, list[dict[str, float]]] = {}
     for line in (folder / "metrics.jsonl").read_text().splitlines():
@@ -72,19 +71,6 @@ def conditions(folder: Path, within: float) -> list[Condition]:
     return found
 
 
-def run_folders(paths: list[Path]) -> list[Path]:
-    """Each path if it is a run folder, else the run folders in it."""
-    folders = []
-    for path in paths:
-        if (path / CONFIG_FILE).is_file():
-            folders.append(path)
-        else:
-            folders += sorted(p.parent for p in path.glob(f"*/{CONFIG_FILE}"))
-    if not folders:
-        raise LolgpsError(f"no run folder in {' '.join(map(str, paths))}")
-    return folders
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -92,7 +78,8 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--within", type=float, default=0.02)
     args = parser.parse_args()
-    found = [c for folder in run_folders(args.runs) for c in conditions(folder, args.within)]
+    folders = [f for path in args.runs for f in runs_holding(path, CONFIG_FILE, "run")]
+    found = [c for folder in folders for c in conditions(folder, args.within)]
     print(f"{'run':40} cond iters settled all-succeed  mean cost by iteration")
     for c in found:
         costs = " ".join(f"{v:.3f}" for v in c.costs)
